@@ -1,0 +1,44 @@
+# sb3-soup developer commands. `make demo` and `make test` each install what they need first.
+PYTHON ?= python3
+PIP = $(PYTHON) -m pip
+# The CPU build of torch: install it before anything that depends on torch, or pip pulls a multi-GB CUDA build.
+TORCH_CPU ?= torch==2.13.0
+PYTEST_WORKERS ?= 2
+LINT_PATHS = sb3_soup/ tests/ examples/ benchmarks/
+
+.PHONY: install install-tests demo test test-slow test-all lint type check-codestyle format
+
+install:
+	$(PIP) install --quiet $(TORCH_CPU)
+	$(PIP) install --quiet -e .
+
+install-tests:
+	$(PIP) install --quiet $(TORCH_CPU)
+	$(PIP) install --quiet -e ".[tests]"
+
+## Train SOUP on a small default (Pendulum-v1), print evaluation returns, save the model and a learning curve.
+demo: install
+	$(PYTHON) -m sb3_soup.demo --out demo_output
+
+## The default test suite (no `slow` tests), on all cores.
+test: install-tests
+	$(PYTHON) -m pytest -m "not slow" -n $(PYTEST_WORKERS) --durations=15
+
+## Only the long tests (learning on Pendulum, subprocess CLIs).
+test-slow: install-tests
+	$(PYTHON) -m pytest -m slow -n $(PYTEST_WORKERS) --durations=15
+
+test-all: test test-slow
+
+lint:
+	$(PYTHON) -m ruff check $(LINT_PATHS)
+
+check-codestyle:
+	$(PYTHON) -m ruff format --check $(LINT_PATHS)
+
+format:
+	$(PYTHON) -m ruff format $(LINT_PATHS)
+	$(PYTHON) -m ruff check --fix $(LINT_PATHS)
+
+type:
+	$(PYTHON) -m mypy sb3_soup/
