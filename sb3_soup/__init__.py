@@ -1,8 +1,38 @@
-"""sb3-soup: SOUP (Self-Adaptive Double Bootstrapped DDPG) for Stable-Baselines3."""
+"""sb3-soup: SOUP (Self-Adaptive Double Bootstrapped DDPG, Zheng et al., IJCAI 2018) for Stable-Baselines3."""
 
 import os
 
-with open(os.path.join(os.path.dirname(__file__), "version.txt")) as file_handler:
+from sb3_soup.buffers import BootstrappedDictReplayBuffer, BootstrappedReplayBuffer
+from sb3_soup.confidence import (
+    AdaptiveConfidence,
+    ConfidenceRollout,
+    ConfidenceStrategy,
+    DecayedConfidence,
+    FixedConfidence,
+    NoConfidence,
+)
+from sb3_soup.policies import MlpPolicy, MultiInputPolicy, SOUPPolicy
+from sb3_soup.presets import PRESETS
+from sb3_soup.soup import SOUP
+
+# Read version from file
+version_file = os.path.join(os.path.dirname(__file__), "version.txt")
+with open(version_file) as file_handler:
     __version__ = file_handler.read().strip()
 
-__all__ = ["__version__"]
+__all__ = [
+    "PRESETS",
+    "SOUP",
+    "AdaptiveConfidence",
+    "BootstrappedDictReplayBuffer",
+    "BootstrappedReplayBuffer",
+    "ConfidenceRollout",
+    "ConfidenceStrategy",
+    "DecayedConfidence",
+    "FixedConfidence",
+    "MlpPolicy",
+    "MultiInputPolicy",
+    "NoConfidence",
+    "SOUPPolicy",
+    "__version__",
+]

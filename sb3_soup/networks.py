@@ -1,0 +1,290 @@
+"""
+Multi-head networks of SOUP: a shared body followed by K heads whose parameters are batched as (K, in, out) tensors.
+
+Shapes in comments: K heads, B batch, F features, A action dimension, P paired heads (actor head k with critic head k).
+"""
+
+import math
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BaseModel
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.type_aliases import PyTorchObs
+from torch import nn
+from torch.nn import functional as F
+
+HeadIndex = int | None
+"""Which head(s) to run: an int runs that head alone, ``None`` runs all heads at once."""
+
+
+def scale_grad(x: th.Tensor, scale: float) -> th.Tensor:
+    """
+    Identity in the forward pass, gradient multiplied by ``scale`` in the backward pass.
+    Used so that a body shared by K heads that all receive a loss gets the mean of their gradients.
+    """
+    if scale == 1.0:
+        return x
+    return x * scale + x.detach() * (1.0 - scale)
+
+
+class VectorizedLinear(nn.Module):
+    """
+    K independent linear layers evaluated with one batched matmul (as CORL's ``VectorizedLinear``).
+    Each head is initialised independently like ``nn.Linear`` (the ensemble's only source of initial diversity).
+
+    :param in_features: input size
+    :param out_features: output size
+    :param n_heads: number of heads K
+    """
+
+    def __init__(self, in_features: int, out_features: int, n_heads: int):
+        super().__init__()
+        self.in_features = in_features
+        self.out_features = out_features
+        self.n_heads = n_heads
+        self.weight = nn.Parameter(th.empty(n_heads, in_features, out_features))  # (K, in, out)
+        self.bias = nn.Parameter(th.empty(n_heads, 1, out_features))  # (K, 1, out)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        # Same distribution as nn.Linear, drawn independently for every head
+        for k in range(self.n_heads):
+            nn.init.kaiming_uniform_(self.weight[k].T, a=math.sqrt(5))
+        bound = 1 / math.sqrt(self.in_features)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: th.Tensor, head: HeadIndex = None) -> th.Tensor:
+        """
+        :param x: ``(B, in)`` input shared by the heads, or ``(K or 1, B, in)`` one input per head
+        :param head: run only this head (then ``x`` is ``(B, in)`` and the output ``(B, out)``)
+        :return: ``(K, B, out)`` for all heads, ``(B, out)`` for one head
+        """
+        if head is not None:
+            return th.addmm(self.bias[head], x, self.weight[head])  # (B, out)
+        if x.dim() == 2:
+            x = x.unsqueeze(0)  # (1, B, in), broadcast over the heads
+        return th.matmul(x, self.weight) + self.bias  # (K, B, out)
+
+    def extra_repr(self) -> str:
+        return f"in_features={self.in_features}, out_features={self.out_features}, n_heads={self.n_heads}"
+
+
+class HeadStack(nn.Module):
+    """
+    The K heads of an ensemble: ``len(layer_sizes)`` hidden vectorized layers with activation, then a vectorized
+    output layer (no activation).
+
+    :param in_features: input size
+    :param layer_sizes: hidden sizes of each head
+    :param out_features: output size of each head
+    :param n_heads: number of heads K
+    :param activation_fn: activation after each hidden layer
+    """
+
+    def __init__(
+        self, in_features: int, layer_sizes: list[int], out_features: int, n_heads: int, activation_fn: type[nn.Module]
+    ):
+        super().__init__()
+        sizes = [in_features, *layer_sizes, out_features]
+        self.layers = nn.ModuleList(VectorizedLinear(sizes[i], sizes[i + 1], n_heads) for i in range(len(sizes) - 1))
+        self.activation = activation_fn()
+        self.n_heads = n_heads
+
+    def forward(self, x: th.Tensor, head: HeadIndex = None) -> th.Tensor:
+        for i, layer in enumerate(self.layers):
+            x = layer(x, head)
+            if i < len(self.layers) - 1:
+                x = self.activation(x)
+        return x
+
+
+def mlp(sizes: list[int], activation_fn: type[nn.Module]) -> nn.Sequential:
+    """Linear layers of the given sizes, each followed by the activation."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers += [nn.Linear(sizes[i], sizes[i + 1]), activation_fn()]
+    return nn.Sequential(*layers)
+
+
+class EnsembleModel(BaseModel):
+    """Common part of the multi-head actor and critic: body/head parameter lists for optimizers and soft updates."""
+
+    body: nn.Module
+    heads: HeadStack
+
+    def head_parameters(self) -> list[th.Tensor]:
+        """Parameters batched over heads, shape (K, ...)."""
+        return list(self.heads.parameters())
+
+    def body_parameters(self) -> list[th.Tensor]:
+        """Parameters shared by all heads (features extractor and body)."""
+        head_ids = {id(p) for p in self.head_parameters()}
+        return [p for p in self.parameters() if id(p) not in head_ids]
+
+
+class EnsembleActor(EnsembleModel):
+    """
+    Bootstrapped actor: shared body [256] -> K heads [128] -> tanh (paper sizes by default).
+    Outputs are in [-1, 1]; the policy rescales them to the action bounds.
+
+    :param observation_space: observation space
+    :param action_space: action space (Box)
+    :param n_heads: number of actor heads
+    :param body_arch: hidden sizes of the shared body
+    :param head_arch: hidden sizes of each head
+    :param features_extractor: features extractor (SB3)
+    :param features_dim: its output size
+    :param activation_fn: activation function
+    :param normalize_images: whether to divide images by 255
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        n_heads: int,
+        body_arch: list[int],
+        head_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.LeakyReLU,
+        normalize_images: bool = True,
+    ):
+        super().__init__(
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
+        )
+        self.n_heads = n_heads
+        self.body_arch = body_arch
+        self.head_arch = head_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        self.body = mlp([features_dim, *body_arch], activation_fn)
+        body_out = body_arch[-1] if body_arch else features_dim
+        self.heads = HeadStack(body_out, head_arch, get_action_dim(action_space), n_heads, activation_fn)
+
+    def _get_constructor_parameters(self) -> dict:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                n_heads=self.n_heads,
+                body_arch=self.body_arch,
+                head_arch=self.head_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+            )
+        )
+        return data
+
+    def body_features(self, obs: PyTorchObs, grad_scale: float = 1.0) -> th.Tensor:
+        """Shared body output ``(B, F)``; ``grad_scale`` scales the gradient the body receives."""
+        features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+        return scale_grad(self.body(features), grad_scale)
+
+    def forward(self, obs: PyTorchObs, head: HeadIndex = None, grad_scale: float = 1.0) -> th.Tensor:  # type: ignore[override]
+        """
+        :return: candidates ``(K, B, A)`` of all heads, or ``(B, A)`` of one head
+        """
+        return th.tanh(self.heads(self.body_features(obs, grad_scale), head))
+
+
+class EnsembleCritic(EnsembleModel):
+    """
+    Bootstrapped critic: shared body [256, 256] where the action joins at the second layer (as in DDPG),
+    then K heads [128] -> 1 (paper sizes by default).
+
+    The second layer is split as ``W [h1; a] = W_h h1 + W_a a`` so that scoring K candidates computes the observation
+    part once: the K x K matrix ``V[i, k] = Q_i(s, a^k)`` costs one body pass plus K cheap action projections.
+
+    :param observation_space: observation space
+    :param action_space: action space (Box)
+    :param n_heads: number of critic heads
+    :param body_arch: hidden sizes of the shared body (at least two: the action joins at the second)
+    :param head_arch: hidden sizes of each head
+    :param features_extractor: features extractor (SB3)
+    :param features_dim: its output size
+    :param activation_fn: activation function
+    :param normalize_images: whether to divide images by 255
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        n_heads: int,
+        body_arch: list[int],
+        head_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.LeakyReLU,
+        normalize_images: bool = True,
+    ):
+        super().__init__(
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
+        )
+        if len(body_arch) < 2:
+            raise ValueError(f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {body_arch}")
+        self.n_heads = n_heads
+        self.body_arch = body_arch
+        self.head_arch = head_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+        action_dim = get_action_dim(action_space)
+        self.obs_layer = nn.Linear(features_dim, body_arch[0])  # (F -> H1)
+        self.joint_layer = nn.Linear(body_arch[0] + action_dim, body_arch[1])  # ([H1, A] -> H2)
+        self.body = mlp(body_arch[1:], activation_fn)  # remaining body layers (empty for [H1, H2])
+        self.activation = activation_fn()
+        self.heads = HeadStack(body_arch[-1], head_arch, 1, n_heads, activation_fn)
+
+    def _get_constructor_parameters(self) -> dict:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                n_heads=self.n_heads,
+                body_arch=self.body_arch,
+                head_arch=self.head_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+            )
+        )
+        return data
+
+    def body_features(self, obs: PyTorchObs, actions: th.Tensor, grad_scale: float = 1.0) -> th.Tensor:
+        """
+        :param actions: ``(B, A)`` or ``(N, B, A)`` (N candidate actions per observation)
+        :return: body output ``(B, F)`` or ``(N, B, F)``
+        """
+        features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+        h1 = self.activation(self.obs_layer(features))  # (B, H1)
+        w_obs, w_act = self.joint_layer.weight.split([h1.shape[-1], actions.shape[-1]], dim=1)
+        z_obs = F.linear(h1, w_obs, self.joint_layer.bias)  # (B, H2)
+        z = z_obs + F.linear(actions, w_act)  # (B, H2) or (N, B, H2)
+        return scale_grad(self.body(self.activation(z)), grad_scale)
+
+    def forward(  # type: ignore[override]
+        self, obs: PyTorchObs, actions: th.Tensor, head: HeadIndex = None, grad_scale: float = 1.0
+    ) -> th.Tensor:
+        """
+        Q-values of (obs, actions).
+
+        - ``head=k``, actions ``(B, A)``: head k only, returns ``(B, 1)``;
+        - ``head=None``, actions ``(B, A)``: every head on the same actions, returns ``(K, B, 1)``;
+        - ``head=None``, actions ``(K or 1, B, A)``: head k scores actions[k] (broadcast when one side is 1),
+          returns ``(P, B, 1)``: the paired evaluation used to train all heads at once.
+        """
+        return self.heads(self.body_features(obs, actions, grad_scale), head)
+
+    def q_matrix(self, obs: PyTorchObs, candidates: th.Tensor) -> th.Tensor:
+        """
+        E-Critic input: every critic head scores every candidate.
+
+        :param candidates: ``(Ka, B, A)`` actions proposed by the actor heads
+        :return: ``V`` of shape ``(B, Kc, Ka)`` with ``V[b, i, k] = Q_i(s_b, a_b^k)``
+        """
+        n_candidates, batch_size, _ = candidates.shape
+        features = self.body_features(obs, candidates)  # (Ka, B, F)
+        q = self.heads(features.reshape(1, n_candidates * batch_size, -1))  # (Kc, Ka * B, 1)
+        return q.reshape(self.n_heads, n_candidates, batch_size).permute(2, 0, 1)  # (B, Kc, Ka)

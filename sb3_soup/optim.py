@@ -1,0 +1,101 @@
+"""
+Adam for ensembles whose heads are batched in one tensor.
+
+Plain Adam moves every parameter that has moments, even one whose gradient is zero, so training head k with
+``torch.optim.Adam`` over a (K, in, out) tensor would still move the other heads. ``EnsembleAdam`` keeps Adam's
+moments and step count per head (row of dimension 0) for the parameter groups marked ``heads=True`` and, when told
+which head is trained, updates that row alone, as K separate optimizers (one per head, as in the paper) would.
+"""
+
+from collections.abc import Iterable
+from typing import Any
+
+import torch as th
+
+
+class EnsembleAdam(th.optim.Optimizer):
+    """
+    Adam (Kingma and Ba, 2015) with per-head state for head-batched parameters.
+
+    Parameter groups with ``heads=True`` hold tensors whose first dimension indexes the K heads;
+    other groups are ordinary parameters (shared bodies).
+
+    :param params: parameters or parameter groups (dicts with an optional ``heads`` flag)
+    :param lr: learning rate
+    :param betas: coefficients of the running averages of the gradient and its square
+    :param eps: term added to the denominator
+    :param weight_decay: L2 penalty (added to the gradient, as ``torch.optim.Adam``)
+    """
+
+    def __init__(
+        self,
+        params: Iterable[Any],
+        lr: float = 1e-3,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+        weight_decay: float = 0.0,
+    ):
+        if lr < 0.0:
+            raise ValueError(f"Invalid learning rate: {lr}, expected lr >= 0")
+        if not all(0.0 <= beta < 1.0 for beta in betas):
+            raise ValueError(f"Invalid betas: {betas}, expected each in [0, 1)")
+        if eps < 0.0:
+            raise ValueError(f"Invalid eps: {eps}, expected eps >= 0")
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, weight_decay=weight_decay, heads=False))
+
+    @th.no_grad()
+    def step(self, closure: Any = None, head: int | th.Tensor | None = None) -> Any:  # type: ignore[override]
+        """
+        Perform one optimisation step.
+
+        :param closure: re-evaluates the loss (as in ``torch.optim``)
+        :param head: for head-batched groups, which heads to update: one index, a bool tensor of shape (K,),
+            or ``None`` for every head. Heads left out keep their values and their Adam state.
+        :return: the closure's loss, if any
+        """
+        loss = None
+        if closure is not None:
+            with th.enable_grad():
+                loss = closure()
+        for group in self.param_groups:
+            # Ellipsis selects everything, also the 0-dim step counter of a body parameter
+            rows: Any = head if (group["heads"] and isinstance(head, int)) else ...
+            row_mask = head if (group["heads"] and isinstance(head, th.Tensor)) else None
+            for param in group["params"]:
+                if param.grad is not None:
+                    self._adam_update(group, param, rows, row_mask)
+        return loss
+
+    def _adam_update(self, group: dict[str, Any], param: th.Tensor, rows: Any, row_mask: th.Tensor | None) -> None:
+        beta1, beta2 = group["betas"]
+        state = self.state[param]
+        if len(state) == 0:
+            state["exp_avg"] = th.zeros_like(param, memory_format=th.preserve_format)
+            state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
+            # one step count per head; float so that load_state_dict casts it with the other state tensors
+            state["n_steps"] = th.zeros((param.shape[0],) if group["heads"] else (), dtype=param.dtype, device=param.device)
+        value, grad = param[rows], param.grad[rows]  # type: ignore[index]
+        exp_avg, exp_avg_sq, n_steps = state["exp_avg"][rows], state["exp_avg_sq"][rows], state["n_steps"][rows]
+        if group["weight_decay"] != 0:
+            grad = grad.add(value, alpha=group["weight_decay"])
+        # (K, 1, ..., 1): broadcasts a per-head quantity over each head's parameter dims
+        per_head_shape = n_steps.shape + (1,) * (value.dim() - n_steps.dim())
+        # 1 for the rows to update, 0 for the rows to leave as they are
+        update: Any = 1.0
+        if row_mask is not None:
+            n_steps += row_mask.to(value.dtype)
+            update = row_mask.to(value.dtype).reshape(per_head_shape)
+        else:
+            n_steps += 1
+        exp_avg.lerp_(grad, (1 - beta1) * update)
+        exp_avg_sq.mul_(1 - (1 - beta2) * update).addcmul_(grad * update, grad, value=1 - beta2)
+        steps = n_steps.clamp(min=1).reshape(per_head_shape)
+        bias_correction1 = 1 - beta1**steps
+        bias_correction2_sqrt = (1 - beta2**steps).sqrt()
+        denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(group["eps"])
+        value.addcdiv_(exp_avg * update, denom * bias_correction1, value=-group["lr"])
+
+
+def ensemble_param_groups(body: list[th.Tensor], heads: list[th.Tensor]) -> list[dict[str, Any]]:
+    """Parameter groups for :class:`EnsembleAdam`: the shared body, then the head-batched parameters."""
+    return [{"params": body, "heads": False}, {"params": heads, "heads": True}]

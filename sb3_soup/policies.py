@@ -1,0 +1,325 @@
+"""SOUP policy: bootstrapped actor and critic, their targets, the confidence strategy, and the ensemble selection."""
+
+from typing import Any, NamedTuple
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+from sb3_soup.confidence import ConfidenceStrategy, make_confidence
+from sb3_soup.networks import EnsembleActor, EnsembleCritic, EnsembleModel
+from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
+
+# The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
+DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
+
+
+def parse_net_arch(net_arch: dict[str, list[int]] | None) -> dict[str, list[int]]:
+    """Fill the missing entries of ``net_arch`` with the paper's sizes and check the others."""
+    if net_arch is None:
+        return {key: list(value) for key, value in DEFAULT_NET_ARCH.items()}
+    if not isinstance(net_arch, dict):
+        raise ValueError(
+            f"net_arch must be a dict with keys {sorted(DEFAULT_NET_ARCH)} (body and head sizes of actor and critic), "
+            f"e.g. {DEFAULT_NET_ARCH}; got {net_arch!r}"
+        )
+    unknown = set(net_arch) - set(DEFAULT_NET_ARCH)
+    if unknown:
+        raise ValueError(f"net_arch has unknown keys {sorted(unknown)}; accepted keys: {sorted(DEFAULT_NET_ARCH)}")
+    arch = {key: list(net_arch.get(key, value)) for key, value in DEFAULT_NET_ARCH.items()}
+    for key, sizes in arch.items():
+        if not all(isinstance(size, int) and not isinstance(size, bool) and size > 0 for size in sizes):
+            raise ValueError(f"net_arch[{key!r}] must be a list of positive ints, got {sizes!r}")
+    if len(arch["qf_body"]) < 2:
+        raise ValueError(
+            f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {arch['qf_body']}"
+        )
+    return arch
+
+
+def e_critic(q_matrix: th.Tensor, weights: th.Tensor) -> th.Tensor:
+    """
+    E-Critic layer (eq. 7): E-Q value of each candidate, ``v[k] = sum_i W[i, k] * V[i, k]``.
+
+    :param q_matrix: ``V`` of shape ``(B, Kc, Ka)``
+    :param weights: ``W``, broadcastable to ``V``
+    :return: ``v`` of shape ``(B, Ka)``
+    """
+    return (weights * q_matrix).sum(dim=1)
+
+
+def e_actor(candidates: th.Tensor, e_q: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """
+    E-Actor layer (eq. 7): the candidate with the highest E-Q value.
+
+    :param candidates: ``(Ka, B, A)``
+    :param e_q: ``(B, Ka)``
+    :return: the E-actions ``(B, A)`` and the chosen candidate indices ``(B,)``
+    """
+    chosen = e_q.argmax(dim=1)  # (B,)
+    return candidates[chosen, th.arange(candidates.shape[1], device=candidates.device)], chosen
+
+
+class Selection(NamedTuple):
+    """What the ensemble decided for a batch of observations."""
+
+    actions: th.Tensor  # (B, A) E-actions in [-1, 1]
+    chosen: th.Tensor  # (B,) index of the chosen candidate
+    q_matrix: th.Tensor | None  # (B, Kc, Ka), None when there is one actor and one critic head
+    weights: th.Tensor | None  # W broadcastable to (B, Kc, Ka)
+
+
+class SOUPPolicy(BasePolicy):
+    """
+    Policy class (actor, critic and their targets, confidence strategy) for SOUP.
+    ``_predict`` performs the E-Critic/E-Actor selection, so ``predict``, ``evaluate_policy`` and
+    ``EvalCallback`` act with the whole ensemble.
+
+    :param observation_space: Observation space
+    :param action_space: Action space (Box)
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param net_arch: body and head sizes: ``dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])``
+        (the paper's, default); missing keys take the default
+    :param activation_fn: Activation function (LeakyReLU, as in the paper)
+    :param n_actor_heads: number of actor heads
+    :param n_critic_heads: number of critic heads
+    :param confidence: confidence strategy: "none", "fixed", "decayed", "adaptive" or a ConfidenceStrategy
+    :param confidence_kwargs: keyword arguments of the named strategy (alpha, decay, lr, temperature, baseline)
+    :param features_extractor_class: Features extractor to use.
+    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor.
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
+    :param optimizer_class: The optimizer to use (``EnsembleAdam`` keeps per-head state, so training one head
+        leaves the others untouched)
+    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+    """
+
+    actor: EnsembleActor
+    actor_target: EnsembleActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
+    confidence: ConfidenceStrategy
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.LeakyReLU,
+        n_actor_heads: int = 5,
+        n_critic_heads: int = 5,
+        confidence: "str | ConfidenceStrategy" = "adaptive",
+        confidence_kwargs: dict[str, Any] | None = None,
+        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor_class,
+            features_extractor_kwargs,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=True,
+            normalize_images=normalize_images,
+        )
+        for name, value in (("n_actor_heads", n_actor_heads), ("n_critic_heads", n_critic_heads)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if n_actor_heads != n_critic_heads and min(n_actor_heads, n_critic_heads) > 1:
+            raise ValueError(
+                "actor head k is paired with critic head k: n_actor_heads and n_critic_heads must be equal or one of them 1, "
+                f"got n_actor_heads={n_actor_heads}, n_critic_heads={n_critic_heads}"
+            )
+        self.net_arch = parse_net_arch(net_arch)
+        self.activation_fn = activation_fn
+        self.n_actor_heads = n_actor_heads
+        self.n_critic_heads = n_critic_heads
+        self.confidence_spec = confidence
+        self.confidence_kwargs = {} if confidence_kwargs is None else dict(confidence_kwargs)
+        # std of the Gaussian noise added by predict(deterministic=False), set by the algorithm's schedule
+        self.exploration_std = 0.0
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        self.actor = self.make_actor()
+        self.actor_target = self.make_actor()
+        self.actor_target.load_state_dict(self.actor.state_dict())
+        self.critic = self.make_critic()
+        self.critic_target = self.make_critic()
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        for model, target in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
+            model.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+                ensemble_param_groups(model.body_parameters(), model.head_parameters()),
+                lr=lr_schedule(1),
+                **self.optimizer_kwargs,
+            )
+            target.set_training_mode(False)
+            target.requires_grad_(False)
+        self.confidence = make_confidence(self.confidence_spec, **self.confidence_kwargs)
+        self.confidence.setup(self)
+
+    def make_actor(self) -> EnsembleActor:
+        extractor = self.make_features_extractor()
+        return EnsembleActor(
+            self.observation_space,
+            self.action_space,  # type: ignore[arg-type]
+            self.n_actor_heads,
+            self.net_arch["pi_body"],
+            self.net_arch["pi_head"],
+            extractor,
+            extractor.features_dim,
+            self.activation_fn,
+            self.normalize_images,
+        ).to(self.device)
+
+    def make_critic(self) -> EnsembleCritic:
+        extractor = self.make_features_extractor()
+        return EnsembleCritic(
+            self.observation_space,
+            self.action_space,  # type: ignore[arg-type]
+            self.n_critic_heads,
+            self.net_arch["qf_body"],
+            self.net_arch["qf_head"],
+            extractor,
+            extractor.features_dim,
+            self.activation_fn,
+            self.normalize_images,
+        ).to(self.device)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                activation_fn=self.activation_fn,
+                n_actor_heads=self.n_actor_heads,
+                n_critic_heads=self.n_critic_heads,
+                confidence=self.confidence_spec,
+                confidence_kwargs=self.confidence_kwargs,
+                lr_schedule=self._dummy_schedule,  # dummy lr schedule, not needed for loading policy alone
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                features_extractor_class=self.features_extractor_class,
+                features_extractor_kwargs=self.features_extractor_kwargs,
+            )
+        )
+        return data
+
+    @property
+    def n_pairs(self) -> int:
+        """Number of (actor head, critic head) pairs, i.e. of bootstrap masks: max(n_actor_heads, n_critic_heads)."""
+        return max(self.n_actor_heads, self.n_critic_heads)
+
+    def pair_heads(self, pair: int) -> tuple[int, int]:
+        """The actor head and the critic head of pair ``pair`` (a single head serves every pair)."""
+        return (pair if self.n_actor_heads > 1 else 0), (pair if self.n_critic_heads > 1 else 0)
+
+    def select(self, obs: PyTorchObs) -> Selection:
+        """
+        Ensemble action selection (eq. 7), batched over observations, without noise.
+        Every actor head proposes a candidate, every critic head scores every candidate (``V``),
+        the confidence strategy weights the scores (``W``), and the best E-Q value wins.
+        """
+        candidates = self.actor(obs)  # (Ka, B, A)
+        if self.n_actor_heads == 1 and self.n_critic_heads == 1:
+            return Selection(candidates[0], th.zeros(candidates.shape[1], dtype=th.long, device=candidates.device), None, None)
+        q_matrix = self.critic.q_matrix(obs, candidates)  # (B, Kc, Ka)
+        weights = self.confidence.weights(obs, q_matrix)  # broadcastable to (B, Kc, Ka)
+        try:
+            broadcastable = th.broadcast_shapes(weights.shape, q_matrix.shape) == q_matrix.shape
+        except RuntimeError:
+            broadcastable = False
+        if not broadcastable:
+            raise ValueError(
+                f"{type(self.confidence).__name__}.weights returned shape {tuple(weights.shape)}, "
+                f"expected one broadcastable to (B, Kc, Ka) = {tuple(q_matrix.shape)}"
+            )
+        actions, chosen = e_actor(candidates, e_critic(q_matrix, weights))
+        return Selection(actions, chosen, q_matrix, weights)
+
+    def forward(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(observation, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        actions = self.select(observation).actions  # (B, A) in [-1, 1]
+        if not deterministic and self.exploration_std > 0:
+            actions = (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
+        return actions
+
+    def set_training_mode(self, mode: bool) -> None:
+        """
+        Put the policy in either training or evaluation mode (affects batch norm / dropout).
+        The target networks stay in evaluation mode.
+
+        :param mode: if true, set to training mode, else set to evaluation mode
+        """
+        self.actor.set_training_mode(mode)
+        self.critic.set_training_mode(mode)
+        self.confidence.train(mode)
+        self.training = mode
+
+
+def soft_update(model: EnsembleModel, target: EnsembleModel, tau: float, head: int | None = None) -> None:
+    """
+    Polyak update (eq. 6) of the shared body and of one head (``head=k``) or every head (``head=None``).
+    Buffers (e.g. batch-norm statistics) are copied.
+    """
+    with th.no_grad():
+        th._foreach_lerp_(target.body_parameters(), model.body_parameters(), tau)
+        if head is None:
+            th._foreach_lerp_(target.head_parameters(), model.head_parameters(), tau)
+        else:
+            th._foreach_lerp_([p[head] for p in target.head_parameters()], [p[head] for p in model.head_parameters()], tau)
+        for target_buffer, buffer in zip(target.buffers(), model.buffers()):
+            target_buffer.copy_(buffer)
+
+
+MlpPolicy = SOUPPolicy
+
+
+class MultiInputPolicy(SOUPPolicy):
+    """
+    Policy class for SOUP with Dict observations (see :class:`SOUPPolicy` for the parameters);
+    uses SB3's ``CombinedExtractor`` by default.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.LeakyReLU,
+        n_actor_heads: int = 5,
+        n_critic_heads: int = 5,
+        confidence: "str | ConfidenceStrategy" = "adaptive",
+        confidence_kwargs: dict[str, Any] | None = None,
+        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch,
+            activation_fn,
+            n_actor_heads,
+            n_critic_heads,
+            confidence,
+            confidence_kwargs,
+            features_extractor_class,
+            features_extractor_kwargs,
+            normalize_images,
+            optimizer_class,
+            optimizer_kwargs,
+        )

@@ -1,0 +1,103 @@
+"""The self-adaptive confidence (eq. 8): confidence in (0, 1], REINFORCE moves it towards rewarded critic heads."""
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_soup import SOUP, AdaptiveConfidence, ConfidenceRollout, ConfidenceStrategy
+
+
+def _strategy(n_heads: int = 2, **kwargs) -> AdaptiveConfidence:
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=n_heads, confidence=AdaptiveConfidence(**kwargs), seed=0)
+    return model.policy.confidence  # type: ignore[return-value]
+
+
+def test_confidence_stays_in_the_unit_interval():
+    strategy = _strategy(n_heads=4, eps=1e-3)
+    obs = th.as_tensor(np.random.default_rng(0).normal(scale=100.0, size=(256, 3)), dtype=th.float32)
+    confidence = strategy.confidence(obs)
+    assert confidence.shape == (256, 4)
+    assert bool((confidence >= 1e-3).all()) and bool((confidence <= 1.0).all())
+
+
+@pytest.mark.parametrize("baseline", [True, False])
+def test_reinforce_raises_the_confidence_of_the_rewarded_critic_head(baseline):
+    """
+    Toy problem: critic head 0 always prefers candidate 0, critic head 1 candidate 1, and only candidate 0 is
+    rewarded. The selection that followed head 0 was the good one, so head 0's confidence must rise relative to head 1's.
+    """
+    th.manual_seed(0)
+    strategy = _strategy(n_heads=2, lr=1e-2, baseline=baseline)
+    rng = np.random.default_rng(0)
+    obs = th.as_tensor(rng.normal(size=(64, 3)), dtype=th.float32)
+    q_matrix = th.tensor([[1.0, 0.0], [0.0, 1.0]]).expand(64, 2, 2)  # V[i, k]: head i likes candidate i
+    before = strategy.confidence(obs).mean(0).detach()
+    for _ in range(100):
+        chosen = th.as_tensor(rng.integers(0, 2, size=64))
+        rewards = th.where(chosen == 0, 1.0, -1.0)
+        strategy.update(ConfidenceRollout(obs, q_matrix, chosen, rewards))
+    after = strategy.confidence(obs).mean(0).detach()
+    assert after[0] - after[1] > before[0] - before[1] + 0.2
+    assert after[0] > before[0] and after[1] < before[1]
+
+
+def test_reinforce_with_positive_rewards_needs_the_baseline_to_tell_heads_apart():
+    """All rewards positive: with the running-mean baseline the better head still wins."""
+    th.manual_seed(0)
+    strategy = _strategy(n_heads=2, lr=1e-2, baseline=True)
+    rng = np.random.default_rng(1)
+    obs = th.as_tensor(rng.normal(size=(64, 3)), dtype=th.float32)
+    q_matrix = th.tensor([[1.0, 0.0], [0.0, 1.0]]).expand(64, 2, 2)
+    for _ in range(100):
+        chosen = th.as_tensor(rng.integers(0, 2, size=64))
+        strategy.update(ConfidenceRollout(obs, q_matrix, chosen, th.where(chosen == 0, 11.0, 9.0)))
+    confidence = strategy.confidence(obs).mean(0)
+    assert confidence[0] > confidence[1] + 0.2
+    assert float(strategy.reward_baseline) == pytest.approx(10.0, abs=0.5)
+
+
+def test_learning_feeds_the_strategy_the_selections_and_rewards_of_all_envs():
+    seen = []
+
+    class Recording(AdaptiveConfidence):
+        def update(self, rollout):
+            seen.append(rollout)
+            return super().update(rollout)
+
+    env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
+    model = SOUP("MlpPolicy", env, n_heads=3, confidence=Recording(), learning_starts=10, batch_size=8, seed=0)
+    model.learn(40)
+    assert seen, "the strategy was never updated"
+    rollout = seen[-1]
+    assert rollout.q_matrices.shape[1:] == (3, 3)
+    n = rollout.q_matrices.shape[0]
+    assert n % 2 == 0 and rollout.observations.shape == (n, 3) and rollout.chosen.shape == (n,) == rollout.rewards.shape
+    assert "train/confidence_loss" in model.logger.name_to_value
+
+
+def test_a_custom_strategy_is_used_and_saved(tmp_path):
+    class PreferFirstHead(ConfidenceStrategy):
+        def weights(self, obs, q_matrix):
+            weights = th.zeros(1, self.n_critic_heads, self.n_actor_heads)
+            weights[:, 0] = 1.0
+            return weights
+
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence=PreferFirstHead(), learning_starts=10, batch_size=8)
+    model.learn(30)
+    obs = th.zeros(4, 3)
+    selection = model.policy.select(obs)
+    assert th.equal(selection.chosen, selection.q_matrix[:, 0].argmax(1))
+    model.save(tmp_path / "custom")
+    loaded = SOUP.load(tmp_path / "custom")
+    assert type(loaded.policy.confidence).__name__ == "PreferFirstHead"
+
+
+def test_custom_strategy_with_a_wrong_shape_is_refused():
+    class WrongShape(ConfidenceStrategy):
+        def weights(self, obs, q_matrix):
+            return th.ones(5, 7)
+
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence=WrongShape())
+    with pytest.raises(ValueError, match=r"WrongShape.weights returned shape \(5, 7\)"):
+        model.predict(np.zeros(3, dtype=np.float32))

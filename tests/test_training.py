@@ -1,0 +1,204 @@
+"""Algorithm 1's update: one head pair per step, masked losses, per-head targets; K = 1 is DDPG."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_soup import SOUP
+from sb3_soup.buffers import BootstrappedReplayBufferSamples
+
+BATCH = 16
+
+
+def _model(**kwargs) -> SOUP:
+    kwargs.setdefault("n_heads", 3)
+    return SOUP("MlpPolicy", "Pendulum-v1", learning_starts=0, batch_size=BATCH, seed=0, **kwargs)
+
+
+def _batch(n_masks: int, masks: np.ndarray | None = None, seed: int = 0) -> BootstrappedReplayBufferSamples:
+    rng = np.random.default_rng(seed)
+
+    def tensor(*shape):
+        return th.as_tensor(rng.normal(size=shape), dtype=th.float32)
+
+    if masks is None:
+        masks = np.ones((BATCH, n_masks), dtype=bool)
+    return BootstrappedReplayBufferSamples(
+        observations=tensor(BATCH, 3),
+        actions=tensor(BATCH, 1).clamp(-1, 1),
+        next_observations=tensor(BATCH, 3),
+        dones=th.as_tensor(rng.random((BATCH, 1)) < 0.2, dtype=th.float32),
+        rewards=tensor(BATCH, 1),
+        masks=th.as_tensor(masks),
+    )
+
+
+def _snapshot(model: SOUP) -> dict[str, th.Tensor]:
+    return {name: value.detach().clone() for name, value in model.policy.state_dict().items()}
+
+
+def _changed_heads(before: dict[str, th.Tensor], after: dict[str, th.Tensor], prefix: str) -> list[int]:
+    """Indices of the heads of ``prefix`` (e.g. 'actor.') whose parameters changed."""
+    changed = set()
+    for name, value in before.items():
+        if name.startswith(prefix) and ".heads." in name:
+            diff = (after[name] - value).abs().flatten(1).sum(1)  # (K,)
+            changed |= {int(k) for k in th.nonzero(diff).flatten()}
+    return sorted(changed)
+
+
+def _body_changed(before: dict[str, th.Tensor], after: dict[str, th.Tensor], prefix: str) -> bool:
+    return any(
+        not th.equal(value, after[name])
+        for name, value in before.items()
+        if name.startswith(prefix) and ".heads." not in name and value.is_floating_point()
+    )
+
+
+def test_active_pair_step_changes_that_head_and_the_bodies_only():
+    model = _model()
+    before = _snapshot(model)
+    model._train_pair(_batch(3), pair=1)
+    after = _snapshot(model)
+    for prefix in ("actor.", "critic.", "actor_target.", "critic_target."):
+        assert _changed_heads(before, after, prefix) == [1], prefix
+        assert _body_changed(before, after, prefix), prefix
+    # the confidence network is trained by REINFORCE elsewhere, never by the DDPG losses
+    assert not _body_changed(before, after, "confidence.")
+
+
+def test_other_heads_stay_untouched_over_many_steps_of_one_head():
+    """Adam's momentum must not move a head that is not trained (per-head optimizer state)."""
+    model = _model()
+    for _ in range(3):
+        model._train_pair(_batch(3), pair=0)
+    before = _snapshot(model)
+    for seed in range(3):
+        model._train_pair(_batch(3, seed=seed), pair=2)
+    assert _changed_heads(before, _snapshot(model), "actor.") == [2]
+    assert _changed_heads(before, _snapshot(model), "critic.") == [2]
+
+
+@pytest.mark.parametrize("train_heads", ["active", "all"])
+def test_masked_out_transitions_give_no_gradient(train_heads):
+    """
+    Changing the data of transitions whose mask is 0 for head k leaves head k's update unchanged.
+    With every head trained at once, the actor heads are judged by critic heads on a shared critic body that the
+    other heads' losses just moved, so the claim is about the critic heads there (the critic step comes first).
+    """
+    masks = np.ones((BATCH, 3), dtype=bool)
+    masks[:5, 1] = False  # head 1 does not see the first five transitions
+    batch = _batch(3, masks)
+    perturbed = batch._replace(rewards=batch.rewards.clone(), actions=batch.actions.clone())
+    perturbed.rewards[:5] += 100.0
+    perturbed.actions[:5] = -perturbed.actions[:5]
+
+    results = []
+    for data in (batch, perturbed):
+        model = _model(train_heads=train_heads)
+        if train_heads == "active":
+            model._train_pair(data, pair=1)
+        else:
+            model._train_all_pairs(data)
+        results.append(_snapshot(model))
+    checked = ("actor.heads", "critic.heads") if train_heads == "active" else ("critic.heads",)
+    for name, value in results[0].items():
+        if name.startswith(checked):
+            assert th.allclose(value[1], results[1][name][1], atol=1e-6), name  # head 1: same update
+    if train_heads == "all":  # head 0 saw the change
+        assert not th.allclose(results[0]["critic.heads.layers.0.weight"][0], results[1]["critic.heads.layers.0.weight"][0])
+
+
+def test_all_zero_masks_mean_no_update_and_no_nan():
+    model = _model()
+    before = _snapshot(model)
+    masks = np.ones((BATCH, 3), dtype=bool)
+    masks[:, 2] = False
+    assert model._train_pair(_batch(3, masks), pair=2) is None
+    after = _snapshot(model)
+    assert all(th.equal(value, after[name]) for name, value in before.items())
+
+    model = _model(train_heads="all")
+    before = _snapshot(model)
+    critic_loss, actor_loss = model._train_all_pairs(_batch(3, masks))
+    after = _snapshot(model)
+    assert np.isfinite(critic_loss) and np.isfinite(actor_loss)
+    assert _changed_heads(before, after, "critic.") == [0, 1]  # head 2 saw nothing: no update
+    assert _changed_heads(before, after, "actor.") == [0, 1]
+
+
+def test_all_heads_step_updates_every_head():
+    model = _model(train_heads="all")
+    before = _snapshot(model)
+    model._train_all_pairs(_batch(3))
+    after = _snapshot(model)
+    assert _changed_heads(before, after, "actor.") == [0, 1, 2]
+    assert _changed_heads(before, after, "critic.") == [0, 1, 2]
+
+
+def test_one_head_is_ddpg():
+    """
+    K = 1: the update is the DDPG update of eqs. 3-6 with plain Adam. Both sides use Adam eps=1e-4: with the default
+    1e-8, gradients of 1e-11 (dead LeakyReLU slopes) turn float rounding differences into visible steps.
+    """
+    model = _model(
+        n_heads=1,
+        preset="ddpg",
+        tau=0.1,
+        gamma=0.9,
+        learning_rate=1e-3,
+        critic_learning_rate=2e-3,
+        policy_kwargs=dict(optimizer_kwargs=dict(eps=1e-4)),
+    )
+    actor, critic = copy.deepcopy(model.actor), copy.deepcopy(model.critic)
+    actor_target, critic_target = copy.deepcopy(model.actor_target), copy.deepcopy(model.critic_target)
+    actor_opt = th.optim.Adam(actor.parameters(), lr=1e-3, eps=1e-4)
+    critic_opt = th.optim.Adam(critic.parameters(), lr=2e-3, eps=1e-4)
+    data = _batch(1)
+
+    for _ in range(3):
+        model._train_pair(data, pair=0)
+        # eqs. 3-4
+        with th.no_grad():
+            y = data.rewards + 0.9 * (1 - data.dones) * critic_target(
+                data.next_observations, actor_target(data.next_observations, 0), 0
+            )
+        critic_loss = ((y - critic(data.observations, data.actions, 0)) ** 2).mean()
+        critic_opt.zero_grad()
+        critic_loss.backward()
+        critic_opt.step()
+        # eq. 5
+        actor_loss = -critic(data.observations, actor(data.observations, 0), 0).mean()
+        actor_opt.zero_grad()
+        actor_loss.backward()
+        actor_opt.step()
+        # eq. 6
+        with th.no_grad():
+            for net, target in ((actor, actor_target), (critic, critic_target)):
+                for param, target_param in zip(net.parameters(), target.parameters()):
+                    target_param.mul_(0.9).add_(0.1 * param)
+
+    for mine, reference in ((model.actor, actor), (model.critic, critic), (model.actor_target, actor_target)):
+        for param, ref_param in zip(mine.parameters(), reference.parameters()):
+            assert th.allclose(param, ref_param, atol=1e-5)
+    # DDPG acts with its single actor head, no critic in the loop
+    obs = th.zeros(2, 3)
+    assert model.policy.select(obs).q_matrix is None
+
+
+def test_learning_rates_are_the_papers_by_default():
+    model = _model()
+    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
+    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(3e-4)
+
+
+def test_critic_learning_rate_schedule_is_applied():
+    model = SOUP(
+        "MlpPolicy", "Pendulum-v1", n_heads=2, learning_starts=20, batch_size=8, critic_learning_rate=lambda p: 1e-4 + p * 1e-3
+    )
+    model.learn(60)
+    lr = model.critic.optimizer.param_groups[0]["lr"]
+    assert 1e-4 <= lr < 1.1e-3
+    assert model.logger.name_to_value["train/critic_learning_rate"] == pytest.approx(lr)
