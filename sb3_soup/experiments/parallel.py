@@ -64,14 +64,20 @@ def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool =
     :param progress: show progress bars
     :return: one result per run (see :func:`~sb3_soup.experiments.runner.run_one`), in the order of ``specs``
     """
-    workers = max(1, min(workers or os.cpu_count() or 1, len(specs)))
+    results: dict[str, dict[str, Any]] = {}
+    for spec in specs:  # finished runs need no worker
+        if runner.is_finished(spec):
+            results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "skipped", "step": spec.timesteps}
+    todo = [spec for spec in specs if spec.key not in results]
+    if not todo:
+        return [results[spec.key] for spec in specs]
+    workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
     context = mp.get_context("spawn")
     stop_event = context.Event()
-    results: dict[str, dict[str, Any]] = {}
-    board = ProgressBoard(specs, enabled=progress and sys.stderr.isatty())
+    board = ProgressBoard(todo, enabled=progress and sys.stderr.isatty())
     interrupted = False
     with futures.ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=(stop_event,)) as pool:
-        pending = {pool.submit(runner.run_one, dataclasses.asdict(spec)): spec for spec in specs}
+        pending = {pool.submit(runner.run_one, dataclasses.asdict(spec)): spec for spec in todo}
         while pending:
             try:
                 done, _ = futures.wait(pending, timeout=_POLL_SECONDS, return_when=futures.FIRST_COMPLETED)

@@ -170,6 +170,21 @@ def _check_spec(spec: Any, run_dir: Path) -> None:
         )
 
 
+def is_finished(spec: Any) -> bool:
+    """
+    :param spec: a run's :class:`~sb3_soup.experiments.grid.RunSpec`
+    :return: whether its folder holds this run, finished
+    """
+    run_dir = Path(spec.run_dir)
+    if not (run_dir / DONE_FILE).is_file():
+        return False
+    try:
+        _check_spec(spec, run_dir)
+    except ValueError:
+        return False
+    return True
+
+
 def run_one(spec_data: dict[str, Any]) -> dict[str, Any]:
     """
     Train (or resume, or skip if finished) one run. Never raises for a failing run: the error is written to
