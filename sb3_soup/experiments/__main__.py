@@ -1,0 +1,134 @@
+"""
+Command line of the experiment runner.
+
+    python -m sb3_soup.experiments run --suite models --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
+    python -m sb3_soup.experiments report runs/hopper
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+
+from sb3_soup.experiments.grid import SUITES, VARIANTS, build_grid, parse_overrides, parse_seeds
+
+
+def _csv(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def _ints(text: str) -> list[int]:
+    return [int(part) for part in _csv(text)]
+
+
+def make_parser() -> argparse.ArgumentParser:
+    """:return: the parser of ``run`` and ``report``"""
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_soup.experiments", description="Reproduce the SOUP paper's comparisons."
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    run = commands.add_parser("run", help="train every (model, seed) run of a suite; resumable")
+    run.add_argument("--env", required=True, help="Gymnasium env id, e.g. Hopper-v4")
+    run.add_argument("--suite", default="models", choices=sorted(SUITES), help="which comparison (default: models)")
+    run.add_argument("--models", type=_csv, help=f"narrow the suite to these, comma-separated (known: {', '.join(VARIANTS)})")
+    run.add_argument("--heads", type=_ints, help="head counts K, comma-separated (default: the suite's)")
+    run.add_argument("--seeds", type=parse_seeds, default=[0, 1, 2], help="a count (3 -> 0,1,2) or a list (1,5)")
+    run.add_argument("--timesteps", type=int, help="steps per run (default: n_timesteps from soup.yml, else 100000)")
+    run.add_argument("--out", required=True, help="experiment folder")
+    run.add_argument("--workers", type=int, help="parallel runs (default: number of cores)")
+    run.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
+    run.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
+    run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
+    run.add_argument("--hyperparams-file", help="RL-Zoo style YAML (default: sb3_soup/hyperparams/soup.yml)")
+    run.add_argument("--ray-address", help="run as tasks on this Ray cluster ('auto', 'host:port', 'local', ...)")
+    run.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+    report = commands.add_parser("report", help="Table 1 metrics, learning curves and confidence plots of a folder")
+    report.add_argument("out", help="experiment folder")
+    report.add_argument("--threshold", type=float, help="Episode threshold for every env (default: paper's, if any)")
+    report.add_argument("--speedup-threshold", type=float, help="Speed Up running-average threshold for every env")
+    report.add_argument("--window", type=int, default=100, help="running-average window in episodes (0: cumulative mean)")
+    report.add_argument("--baseline", default="ddpg", help="model id that Speed Up compares to (default: ddpg)")
+    report.add_argument("--x", dest="x_axis", default="episodes", choices=["episodes", "timesteps"], help="curves' x-axis")
+    return parser
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """
+    :param args: parsed ``run`` arguments
+    :return: exit status: 0 when every run finished, 1 when some failed, 2 when some were interrupted
+    """
+    from sb3_soup.experiments.parallel import run_local, run_ray
+    from sb3_soup.experiments.report import write_grid
+
+    specs = build_grid(
+        args.env,
+        args.out,
+        suite=args.suite,
+        models=args.models,
+        heads=args.heads,
+        seeds=args.seeds,
+        timesteps=args.timesteps,
+        overrides=parse_overrides(args.hyperparams),
+        hyperparams_file=args.hyperparams_file,
+        checkpoint_freq=args.checkpoint_freq,
+        stop_after=args.stop_after,
+    )
+    write_grid(args.out, specs)
+    print(f"{len(specs)} runs of {args.timesteps or specs[0].timesteps} steps -> {args.out}", file=sys.stderr)
+    if args.ray_address:
+        results = run_ray(specs, args.ray_address, progress=not args.no_progress)
+    else:
+        results = run_local(specs, args.workers, progress=not args.no_progress)
+    counts = Counter(result["status"] for result in results)
+    print("Summary: " + ", ".join(f"{count} {status}" for status, count in sorted(counts.items())))
+    for result in results:
+        if result["status"] == "failed":
+            print(f"  FAILED {result['key']}: {result.get('error')} (see {result['run_dir']}/error.json)")
+        elif result["status"] == "interrupted":
+            print(f"  interrupted {result['key']} at step {result['step']}: re-run the same command to resume")
+    if counts.get("failed"):
+        return 1
+    return 2 if counts.get("interrupted") else 0
+
+
+def report_command(args: argparse.Namespace) -> int:
+    """
+    :param args: parsed ``report`` arguments
+    :return: exit status
+    """
+    from sb3_soup.experiments.report import collect_runs, make_report
+
+    thresholds = None
+    if args.threshold is not None or args.speedup_threshold is not None:
+        from sb3_soup.experiments.metrics import paper_thresholds
+
+        envs = {record.spec.env_id for record in collect_runs(args.out)}
+        thresholds = {}
+        for env_id in envs:
+            episode, lower = paper_thresholds(env_id)
+            thresholds[env_id] = (
+                args.threshold if args.threshold is not None else episode,
+                args.speedup_threshold if args.speedup_threshold is not None else lower,
+            )
+    data = make_report(args.out, thresholds, window=args.window or None, baseline=args.baseline, x_axis=args.x_axis)
+    print((Path(args.out) / "table.md").read_text())
+    print("Wrote " + ", ".join(data["files"]) + f" in {args.out}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """
+    :param argv: command-line arguments (default: ``sys.argv[1:]``)
+    :return: exit status
+    """
+    args = make_parser().parse_args(argv)
+    return run_command(args) if args.command == "run" else report_command(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

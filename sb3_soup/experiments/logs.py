@@ -1,0 +1,133 @@
+"""
+A run's logs: the Monitor CSV (one row per training episode) and SB3's CSV logger (``progress.csv``), both kept
+continuous across resumes: rows written after the checkpoint a run resumes from are cut, then new rows are appended.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from pathlib import Path
+
+import gymnasium as gym
+import pandas as pd
+from stable_baselines3.common.logger import CSVOutputFormat, Logger
+from stable_baselines3.common.monitor import Monitor
+
+MONITOR_FILE = "monitor.csv"
+PROGRESS_FILE = "progress.csv"
+STEP_KEY = "time/total_timesteps"
+_MONITOR_HEADER_LINES = 2  # '#{json}' then 'r,l,t'
+
+
+def monitor_env(env: gym.Env, run_dir: str | os.PathLike) -> Monitor:
+    """
+    Wrap ``env`` in a Monitor writing ``run_dir/monitor.csv``, appending to the file when it exists.
+
+    :param env: the environment
+    :param run_dir: the run's folder
+    :return: the wrapped environment
+    """
+    path = Path(run_dir) / MONITOR_FILE
+    return Monitor(env, str(path), override_existing=not path.is_file())
+
+
+def count_episodes(run_dir: str | os.PathLike) -> int:
+    """
+    :param run_dir: the run's folder
+    :return: the number of episodes in its Monitor CSV
+    """
+    path = Path(run_dir) / MONITOR_FILE
+    if not path.is_file():
+        return 0
+    with open(path) as stream:
+        return max(0, sum(1 for line in stream if line.strip()) - _MONITOR_HEADER_LINES)
+
+
+def truncate_monitor(run_dir: str | os.PathLike, n_episodes: int) -> None:
+    """
+    Keep the first ``n_episodes`` episodes of the run's Monitor CSV (the header stays).
+
+    :param run_dir: the run's folder
+    :param n_episodes: how many episodes to keep
+    """
+    path = Path(run_dir) / MONITOR_FILE
+    if not path.is_file():
+        return
+    lines = [line for line in path.read_text().splitlines(keepends=True) if line.strip()]
+    path.write_text("".join(lines[: _MONITOR_HEADER_LINES + n_episodes]))
+
+
+def truncate_progress(run_dir: str | os.PathLike, max_step: int) -> None:
+    """
+    Drop the rows of the run's ``progress.csv`` logged after step ``max_step``.
+
+    :param run_dir: the run's folder
+    :param max_step: the last step to keep (the checkpoint's ``num_timesteps``)
+    """
+    path = Path(run_dir) / PROGRESS_FILE
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    with open(path, newline="") as stream:
+        rows = list(csv.reader(stream))
+    header, body = rows[0], rows[1:]
+    if STEP_KEY in header:
+        column = header.index(STEP_KEY)
+        body = [row for row in body if row[column] == "" or float(row[column]) <= max_step]
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(body)
+    path.write_text(buffer.getvalue())
+
+
+class AppendingCSVOutputFormat(CSVOutputFormat):
+    """
+    SB3's CSV output, continuing an existing file (its header gives the known columns) instead of truncating it.
+
+    :param filename: the CSV file
+    """
+
+    def __init__(self, filename: str) -> None:
+        path = Path(filename)
+        if not path.is_file() or path.stat().st_size == 0:
+            super().__init__(filename)
+            return
+        self.file = open(path, "r+")
+        header = self.file.readline().rstrip("\n")
+        self.keys = next(csv.reader([header])) if header else []
+        self.separator = ","
+        self.quotechar = '"'
+        self.file.seek(0, os.SEEK_END)
+
+
+def make_logger(run_dir: str | os.PathLike) -> Logger:
+    """
+    :param run_dir: the run's folder
+    :return: an SB3 logger writing (appending to) ``run_dir/progress.csv``
+    """
+    Path(run_dir).mkdir(parents=True, exist_ok=True)
+    return Logger(folder=str(run_dir), output_formats=[AppendingCSVOutputFormat(str(Path(run_dir) / PROGRESS_FILE))])
+
+
+def read_monitor(run_dir: str | os.PathLike) -> pd.DataFrame:
+    """
+    :param run_dir: the run's folder
+    :return: its episodes (columns ``r`` return, ``l`` length, ``t`` seconds); empty when there are none
+    """
+    path = Path(run_dir) / MONITOR_FILE
+    if not path.is_file() or count_episodes(run_dir) == 0:
+        return pd.DataFrame({"r": pd.Series(dtype=float), "l": pd.Series(dtype=int), "t": pd.Series(dtype=float)})
+    return pd.read_csv(path, skiprows=1)
+
+
+def read_progress(run_dir: str | os.PathLike) -> pd.DataFrame:
+    """
+    :param run_dir: the run's folder
+    :return: its logger rows (SB3 keys as columns); empty when there are none
+    """
+    path = Path(run_dir) / PROGRESS_FILE
+    if not path.is_file() or path.stat().st_size == 0:
+        return pd.DataFrame()
+    return pd.read_csv(path)

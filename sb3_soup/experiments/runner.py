@@ -1,0 +1,271 @@
+"""
+Train one (model, seed) run in the current process: build or resume the model, log, checkpoint, mark it done.
+
+The run's folder holds ``spec.json`` (its :class:`~sb3_soup.experiments.grid.RunSpec`), ``monitor.csv``,
+``progress.csv``, ``status.json`` (step reached, for the progress bars), ``checkpoints/`` while it runs, and at the
+end ``model.zip`` plus ``done.json``, or ``error.json`` when it failed. Heavy imports (torch, SB3) happen inside
+:func:`run_one` so that worker processes can limit torch's threads first.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import threading
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+SPEC_FILE = "spec.json"
+STATUS_FILE = "status.json"
+DONE_FILE = "done.json"
+ERROR_FILE = "error.json"
+FINAL_MODEL = "model.zip"
+
+# Set by a signal handler or by the parent (see parallel.py): finish the current step, checkpoint, stop.
+STOP_REQUESTED = threading.Event()
+
+
+def write_json(path: str | os.PathLike, data: dict[str, Any]) -> None:
+    """
+    Write JSON atomically (temporary file, then rename), so readers never see half a file.
+
+    :param path: the file
+    :param data: the data
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str))
+    os.replace(tmp, path)
+
+
+def read_json(path: str | os.PathLike) -> dict[str, Any] | None:
+    """
+    :param path: the file
+    :return: its data, or ``None`` when it is missing or unreadable
+    """
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def resolve_policy_kwargs(value: Any) -> dict[str, Any] | None:
+    """
+    :param value: ``policy_kwargs`` as a dict, ``None``, or an RL-Zoo style expression string
+        such as ``"dict(net_arch=[64, 64], activation_fn=nn.ReLU)"``
+    :return: the dict
+    """
+    if value is None or isinstance(value, dict):
+        return value
+    import torch as th
+
+    # Same convention as the RL Zoo, which evaluates these strings: names from torch only.
+    return eval(value, {"__builtins__": {}, "dict": dict, "nn": th.nn, "th": th, "torch": th})
+
+
+def algo_class(algo: str) -> type:
+    """
+    :param algo: ``"soup"``, ``"td3"`` or ``"sb3_ddpg"``
+    :return: the class that trains it
+    """
+    if algo == "soup":
+        try:
+            from sb3_soup import SOUP  # type: ignore[attr-defined]
+        except ImportError as error:
+            raise ImportError("sb3_soup.SOUP is not available (the core algorithm is not installed on this branch)") from error
+        return SOUP
+    from stable_baselines3 import DDPG, TD3
+
+    classes: dict[str, type] = {"td3": TD3, "sb3_ddpg": DDPG}
+    if algo not in classes:
+        raise ValueError(f"Unknown algorithm {algo!r}")
+    return classes[algo]
+
+
+def build_model(spec: Any, env: Any) -> Any:
+    """
+    A fresh model for a run.
+
+    :param spec: the run's :class:`~sb3_soup.experiments.grid.RunSpec`
+    :param env: its (vectorised, monitored) environment
+    :return: the model
+    """
+    import gymnasium as gym
+    import numpy as np
+
+    kwargs = dict(spec.hyperparams)
+    kwargs["policy_kwargs"] = resolve_policy_kwargs(kwargs.get("policy_kwargs"))
+    if kwargs["policy_kwargs"] is None:
+        del kwargs["policy_kwargs"]
+    policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else "MlpPolicy"
+    if spec.algo != "soup":
+        from stable_baselines3.common.noise import NormalActionNoise
+
+        n_actions = int(np.prod(env.action_space.shape))
+        noise_std = float(kwargs.pop("noise_std", 0.1))
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(n_actions), noise_std * np.ones(n_actions))
+    return algo_class(spec.algo)(policy, env, seed=spec.seed, device="cpu", verbose=0, **kwargs)
+
+
+def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any) -> Any:
+    """The callback doing progress reports, periodic checkpoints and resumable stops."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from sb3_soup.experiments import checkpointing
+
+    class RunCallback(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.last_report = 0.0
+            self.stopped = False
+
+        def _on_step(self) -> bool:
+            now = time.monotonic()
+            if now - self.last_report > 1.0:
+                self.last_report = now
+                report_status(run_dir, "running", self.num_timesteps, spec.timesteps)
+            if spec.checkpoint_freq > 0 and self.num_timesteps % spec.checkpoint_freq == 0:
+                checkpointing.save_checkpoint(self.model, run_dir, state())
+            new_steps = self.num_timesteps - start_step
+            if STOP_REQUESTED.is_set() or (spec.stop_after is not None and new_steps >= spec.stop_after):
+                self.stopped = True
+                return False
+            return True
+
+    return RunCallback()
+
+
+def report_status(run_dir: str | os.PathLike, status: str, step: int, total: int, **extra: Any) -> None:
+    """
+    Record how far a run is (read by the progress bars and by ``report``).
+
+    :param run_dir: the run's folder
+    :param status: ``"running"``, ``"finished"``, ``"interrupted"`` or ``"failed"``
+    :param step: steps done
+    :param total: steps in all
+    :param extra: more fields
+    """
+    write_json(
+        Path(run_dir) / STATUS_FILE, {"status": status, "step": int(step), "total": int(total), "time": time.time(), **extra}
+    )
+
+
+def _check_spec(spec: Any, run_dir: Path) -> None:
+    """Refuse to continue a run folder created with other settings."""
+    previous = read_json(run_dir / SPEC_FILE)
+    if previous is None:
+        return
+    from sb3_soup.experiments.grid import RunSpec
+
+    old = RunSpec(**previous).config()
+    new = json.loads(json.dumps(spec.config()))
+    if old != new:
+        changed = sorted(key for key in set(old) | set(new) if old.get(key) != new.get(key))
+        raise ValueError(
+            f"{run_dir} holds a run with other settings (differs in: {', '.join(changed)}); "
+            "use another --out folder or delete that run"
+        )
+
+
+def is_finished(spec: Any) -> bool:
+    """
+    :param spec: a run's :class:`~sb3_soup.experiments.grid.RunSpec`
+    :return: whether its folder holds this run, finished
+    """
+    run_dir = Path(spec.run_dir)
+    if not (run_dir / DONE_FILE).is_file():
+        return False
+    try:
+        _check_spec(spec, run_dir)
+    except ValueError:
+        return False
+    return True
+
+
+def run_one(spec_data: dict[str, Any]) -> dict[str, Any]:
+    """
+    Train (or resume, or skip if finished) one run. Never raises for a failing run: the error is written to
+    ``error.json`` and returned.
+
+    :param spec_data: the run's :class:`~sb3_soup.experiments.grid.RunSpec` as a dict
+    :return: ``{"key", "status": "finished" | "skipped" | "interrupted" | "failed", "step", "error"?}``
+    """
+    from sb3_soup.experiments.grid import RunSpec
+
+    spec = RunSpec(**spec_data)
+    run_dir = Path(spec.run_dir)
+    result: dict[str, Any] = {"key": spec.key, "run_dir": str(run_dir)}
+    step = 0
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        _check_spec(spec, run_dir)
+        if (run_dir / DONE_FILE).is_file():
+            done = read_json(run_dir / DONE_FILE) or {}
+            return {**result, "status": "skipped", "step": done.get("timesteps", spec.timesteps)}
+        if STOP_REQUESTED.is_set():
+            return {**result, "status": "interrupted", "step": 0}
+        (run_dir / SPEC_FILE).write_text(spec.to_json())
+        (run_dir / ERROR_FILE).unlink(missing_ok=True)
+        status, step = _train(spec, run_dir)
+        return {**result, "status": status, "step": step}
+    except Exception as error:
+        message = f"{type(error).__name__}: {error}"
+        write_json(run_dir / ERROR_FILE, {"error": message, "traceback": traceback.format_exc(), "time": time.time()})
+        report_status(run_dir, "failed", step, spec.timesteps, error=message)
+        return {**result, "status": "failed", "step": step, "error": message}
+
+
+def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
+    """Build or resume the model and train it; return (status, steps done)."""
+    import gymnasium as gym
+    import torch as th
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from sb3_soup.experiments import checkpointing, logs
+
+    th.set_num_threads(1)
+    started = time.time()
+    checkpoint = checkpointing.latest_checkpoint(run_dir)
+    earlier_wall_time = float(checkpoint.state.get("wall_time_s", 0.0)) if checkpoint is not None else 0.0
+
+    def state() -> dict[str, Any]:
+        """What a checkpoint records besides the model: episodes logged so far, training time so far."""
+        return {"episodes": logs.count_episodes(run_dir), "wall_time_s": earlier_wall_time + time.time() - started}
+
+    if checkpoint is not None:
+        logs.truncate_monitor(run_dir, int(checkpoint.state.get("episodes", 0)))
+        logs.truncate_progress(run_dir, checkpoint.step)
+    else:  # nothing to continue from: start the logs afresh
+        for name in (logs.MONITOR_FILE, logs.PROGRESS_FILE):
+            (run_dir / name).unlink(missing_ok=True)
+    env = DummyVecEnv([lambda: logs.monitor_env(gym.make(spec.env_id), run_dir)])
+    try:
+        if checkpoint is not None:
+            model = checkpointing.resume(checkpoint, algo_class(spec.algo), env, device="cpu")
+            # A fresh random stream for the continuation (the old one cannot be restored exactly).
+            model.set_random_seed(spec.seed + checkpoint.step)
+            start_step = checkpoint.step
+        else:
+            model = build_model(spec, env)
+            start_step = 0
+        model.set_logger(logs.make_logger(run_dir))
+        report_status(run_dir, "running", start_step, spec.timesteps)
+        callback = _make_callback(spec, run_dir, start_step, state)
+        remaining = checkpointing.remaining_steps(model, spec.timesteps)
+        if remaining > 0:
+            model.learn(remaining, callback=callback, log_interval=1, reset_num_timesteps=checkpoint is None)
+        step = int(model.num_timesteps)
+        if step < spec.timesteps:
+            checkpointing.save_checkpoint(model, run_dir, state())
+            report_status(run_dir, "interrupted", step, spec.timesteps)
+            return "interrupted", step
+        model.save(run_dir / FINAL_MODEL)
+    finally:
+        env.close()
+    write_json(run_dir / DONE_FILE, {"timesteps": step, **state(), "finished_at": time.time()})
+    shutil.rmtree(run_dir / checkpointing.CHECKPOINT_DIR, ignore_errors=True)
+    report_status(run_dir, "finished", step, spec.timesteps)
+    return "finished", step
