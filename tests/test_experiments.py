@@ -200,7 +200,8 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     # 1. Interrupted: every run stops (resumably) after 250 steps, with a checkpoint.
     assert main([*command, "--stop-after", "250"]) == 2
     models = MODELS.split(",")
-    run_dirs = [out / model / f"seed_{seed}" for model in models for seed in (0, 1)]
+    run_dirs = sorted(path.parent for path in out.glob("*/seed_*/spec.json"))  # e.g. soup-k5/seed_0
+    assert len(run_dirs) == 2 * len(models)
     for run_dir in run_dirs:
         latest = checkpointing.latest_checkpoint(run_dir)
         assert latest is not None and latest.step == 250 and latest.state["episodes"] == 1
@@ -232,15 +233,18 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
         assert (out / name).is_file()
     data = json.loads((out / "metrics.json").read_text())
     assert data["not_included"] == [] and data["thresholds"]["Pendulum-v1"] == {"episode": -1400, "speed_up": -1600}
-    for model in models:
-        entry = data["metrics"]["Pendulum-v1"][model]
-        returns = [logs.read_monitor(out / model / f"seed_{seed}")["r"].to_numpy() for seed in (0, 1)]
+    labels = sorted({run_dir.parent.name for run_dir in run_dirs})  # the runs' labels, e.g. ddpg and soup-k5
+    assert sorted(data["metrics"]["Pendulum-v1"]) == labels
+    for label in labels:
+        entry = data["metrics"]["Pendulum-v1"][label]
+        returns = [logs.read_monitor(out / label / f"seed_{seed}")["r"].to_numpy() for seed in (0, 1)]
         assert entry["n_seeds"] == 2
         assert entry["avg_return"] == pytest.approx(np.mean([r.mean() for r in returns]))
         assert entry["max_return"] == pytest.approx(max(r.max() for r in returns))
     table = (out / "table.md").read_text()
     assert table.startswith("| Env. | Metric |") and "| Pendulum-v1 | Avg Return |" in table
-    if HAS_SOUP and any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k5" / "seed_0").columns):
+    if HAS_SOUP:  # the adaptive run logs its per-head confidence, drawn as Figure 6
+        assert any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k5" / "seed_0").columns)
         assert (out / "confidence.png").is_file()
 
 
