@@ -397,7 +397,7 @@ class SOUP(OffPolicyAlgorithm):
         if selection.q_matrix is None or selection.weights is None:
             return
         q_matrix = selection.q_matrix  # (B, Kc, Ka)
-        if self.policy.confidence.needs_rollout:
+        if self.policy.confidence.needs_rollout and self.gradient_steps != 0:  # no training round would consume it
             self._pending_selection = (obs, q_matrix, selection.chosen)
         weights = selection.weights.expand_as(q_matrix)
         heads = th.arange(self.n_critic_heads, device=q_matrix.device)
