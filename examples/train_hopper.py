@@ -47,8 +47,9 @@ def main() -> None:
     eval_env = make_vec_env(args.env, n_envs=1, seed=args.seed + 1000)
     if args.resume:
         model = SOUP.load(args.resume, env=env, device=args.device, tensorboard_log=str(logdir / "tensorboard"))
-        buffer = Path(args.resume).with_name(Path(args.resume).name.replace("_steps.zip", "_steps.pkl").replace("rl_model_", "rl_model_replay_buffer_"))
-        model.load_replay_buffer(buffer)
+        # CheckpointCallback names them rl_model_<N>_steps.zip and rl_model_replay_buffer_<N>_steps.pkl
+        name = Path(args.resume).name.replace("_steps.zip", "_steps.pkl").replace("rl_model_", "rl_model_replay_buffer_")
+        model.load_replay_buffer(Path(args.resume).with_name(name))
     else:
         model = SOUP(
             "MlpPolicy",
@@ -62,8 +63,13 @@ def main() -> None:
             **PAPER,
         )
     callbacks = [
-        EvalCallback(eval_env, eval_freq=args.eval_freq, n_eval_episodes=10, best_model_save_path=str(logdir / "best"),
-                     log_path=str(logdir / "eval")),  # fmt: skip
+        EvalCallback(
+            eval_env,
+            eval_freq=args.eval_freq,
+            n_eval_episodes=10,
+            best_model_save_path=str(logdir / "best"),
+            log_path=str(logdir / "eval"),
+        ),
         CheckpointCallback(save_freq=50_000, save_path=str(logdir / "checkpoints"), save_replay_buffer=True),
     ]
     model.learn(args.timesteps, callback=callbacks, progress_bar=True, reset_num_timesteps=not args.resume, tb_log_name="SOUP")

@@ -95,7 +95,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     model_path = out / "soup_model.zip"
     model.save(model_path)
-    mean_return, std_return = evaluate_policy(model, eval_env, n_eval_episodes=10, deterministic=True)
+    returns, _ = evaluate_policy(model, eval_env, n_eval_episodes=10, deterministic=True, return_episode_rewards=True)
+    mean_return, std_return = float(np.mean(returns)), float(np.std(returns))
     plot_path = out / "learning_curve.png"
     plot_learning_curve(out / "evaluations.npz", out / "monitor", plot_path, f"SOUP (K={args.n_heads}) on {args.env}")
 
