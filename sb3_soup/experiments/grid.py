@@ -63,6 +63,9 @@ class Variant:
     :param label: the column title (``{K}`` is replaced by the number of heads)
     :param settings: constructor arguments that define the variant (``{K}`` values are replaced by the number of heads)
     :param uses_heads: whether the variant has K heads (its runs are then named ``name-k{K}``)
+    :param same_as: another variant that trains exactly the same model (e.g. the confidence suite's ``none`` is the
+        models suite's ``dbddpg``): its runs are shared, stored under that variant's name, as long as no
+        ``--hyperparams`` override tells them apart
     """
 
     name: str
@@ -70,6 +73,7 @@ class Variant:
     label: str
     settings: dict[str, Any]
     uses_heads: bool = True
+    same_as: str | None = None
 
 
 VARIANTS: dict[str, Variant] = {
@@ -83,19 +87,40 @@ VARIANTS: dict[str, Variant] = {
         Variant("td3", "td3", "TD3", {}, uses_heads=False),
         # Not in any suite: SB3's own DDPG, a sanity baseline for the paper-faithful `ddpg` preset.
         Variant("sb3_ddpg", "sb3_ddpg", "DDPG (SB3)", {}, uses_heads=False),
-        # The confidence suite: DBDDPG with each confidence strategy ("adaptive" is SOUP).
-        Variant("none", "soup", "No confidence (K={K})", {"preset": "dbddpg", "confidence": "none"}),
-        Variant("fixed", "soup", "Fixed confidence (K={K})", {"preset": "dbddpg", "confidence": "fixed"}),
-        Variant("decayed", "soup", "Decayed confidence (K={K})", {"preset": "dbddpg", "confidence": "decayed"}),
-        Variant("adaptive", "soup", "Self-adaptive confidence (K={K})", {"preset": "dbddpg", "confidence": "adaptive"}),
+        # The confidence suite: DBDDPG (K actor and K critic heads, bootstrap masks) with each confidence strategy.
+        # "none" is the dbddpg preset and "adaptive" the soup preset, so they share the models suite's runs. A preset
+        # fixes the confidence, so "fixed" and "decayed" are given without one: SOUP's defaults are then K x K heads
+        # with masks, which is what the dbddpg preset sets too.
+        Variant("none", "soup", "No confidence (K={K})", {"preset": "dbddpg"}, same_as="dbddpg"),
+        Variant("fixed", "soup", "Fixed confidence (K={K})", {"confidence": "fixed"}),
+        Variant("decayed", "soup", "Decayed confidence (K={K})", {"confidence": "decayed"}),
+        Variant("adaptive", "soup", "Self-adaptive confidence (K={K})", {"preset": "soup"}, same_as="soup"),
     )
 }
 
-# suite name -> (variant names in table order, default head counts)
-SUITES: dict[str, tuple[tuple[str, ...], tuple[int, ...]]] = {
-    "models": (("ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup", "td3"), (DEFAULT_HEADS,)),
-    "confidence": (("none", "fixed", "decayed", "adaptive"), (DEFAULT_HEADS,)),
-    "heads": (("soup",), (3, 5, 10)),
+
+@dataclasses.dataclass(frozen=True)
+class Suite:
+    """
+    One of the paper's comparisons.
+
+    :param variants: its variants, in table order
+    :param heads: its default head counts K
+    :param baseline: the variant Speed Up is measured against by default (Table 1: DDPG)
+    """
+
+    variants: tuple[str, ...]
+    heads: tuple[int, ...]
+    baseline: str
+
+
+SUITES: dict[str, Suite] = {
+    # Table 1 and Figure 4.
+    "models": Suite(("ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup", "td3"), (DEFAULT_HEADS,), "ddpg"),
+    # Figure 5 and 6. No DDPG column: Speed Up is against DBDDPG without confidence, what the strategies are added to.
+    "confidence": Suite(("none", "fixed", "decayed", "adaptive"), (DEFAULT_HEADS,), "none"),
+    # Figure 7 (and Table 1's K=10 columns): Speed Up against DDPG when the folder has it (the models suite's runs).
+    "heads": Suite(("soup",), (3, 5, 10), "ddpg"),
 }
 
 
@@ -137,11 +162,17 @@ class RunSpec:
         return f"{self.model}/seed_{self.seed}"
 
     def config(self) -> dict[str, Any]:
-        """The settings that define the run's results (what must match to resume it)."""
+        """
+        The run's identity: the settings that define its results (environment, algorithm, hyper-parameters, seed,
+        budget), what must match to resume, skip or share it. Names (``model``, ``variant``, ``label``) and where or
+        how it runs (``run_dir``, ``checkpoint_freq``, ``stop_after``) are not part of it.
+
+        :return: the settings, JSON-normalised (tuples as lists), so a spec read back from ``spec.json`` compares equal
+        """
         data = dataclasses.asdict(self)
-        for volatile in ("run_dir", "checkpoint_freq", "stop_after"):
-            data.pop(volatile)
-        return data
+        for name in ("model", "variant", "label", "run_dir", "checkpoint_freq", "stop_after"):
+            data.pop(name)
+        return json.loads(json.dumps(data))
 
     def to_json(self) -> str:
         """:return: the spec as JSON"""
@@ -271,6 +302,9 @@ def build_grid(
 
     Precedence of hyper-parameters, lowest first: SOUP's defaults, the env's ``soup.yml`` entry (or the fallback),
     the variant's own settings (preset, confidence, K), the ``*`` overrides, the variant's/model's overrides.
+    A variant that is :attr:`Variant.same_as` another (``none`` = ``dbddpg``, ``adaptive`` = ``soup``) is stored as
+    that one (same folder, name and label), so that suites run into one folder share the run instead of training it
+    twice; overrides aimed at it by name make it a run of its own (``none-k5``).
 
     :param env_id: the environment id
     :param out: the experiment folder (runs go to ``out/model/seed_N``)
@@ -287,12 +321,11 @@ def build_grid(
     """
     if suite not in SUITES:
         raise ValueError(f"Unknown suite {suite!r}; choose from {sorted(SUITES)}")
-    suite_models, suite_heads = SUITES[suite]
-    names = list(models) if models else list(suite_models)
+    names = list(models) if models else list(SUITES[suite].variants)
     unknown = [name for name in names if name not in VARIANTS]
     if unknown:
         raise ValueError(f"Unknown model(s) {unknown}; choose from {sorted(VARIANTS)}")
-    head_counts = list(heads) if heads else list(suite_heads)
+    head_counts = list(heads) if heads else list(SUITES[suite].heads)
     overrides = overrides or {}
     base = {**soup_defaults(), **load_hyperparams(env_id, hyperparams_file)}
     if timesteps is None:
@@ -301,24 +334,16 @@ def build_grid(
     for name in names:
         variant = VARIANTS[name]
         for n_heads in head_counts if variant.uses_heads else [None]:
-            model = f"{name}-k{n_heads}" if n_heads is not None else name
-            params = dict(base)
-            params.update({key: _format(value, n_heads) for key, value in variant.settings.items()})
-            if n_heads is not None:
-                params["n_heads"] = n_heads
-            params.update(overrides.get("*", {}))
-            params.update(overrides.get(name, {}))
-            params.update(overrides.get(model, {}))
-            if variant.algo != "soup":
-                params = {**peer_hyperparams(params), **overrides.get(name, {}), **overrides.get(model, {})}
+            stored, params = _stored_variant(variant, n_heads, base, overrides)
+            model = _model_id(stored.name, n_heads)
             for seed in seeds:
                 specs.append(
                     RunSpec(
                         env_id=env_id,
                         model=model,
-                        variant=name,
-                        algo=variant.algo,
-                        label=variant.label.replace("{K}", str(n_heads)),
+                        variant=stored.name,
+                        algo=stored.algo,
+                        label=_format(stored.label, n_heads),
                         n_heads=n_heads,
                         seed=int(seed),
                         timesteps=int(timesteps),
@@ -329,6 +354,71 @@ def build_grid(
                     )
                 )
     return specs
+
+
+def _model_id(name: str, n_heads: int | None) -> str:
+    return f"{name}-k{n_heads}" if n_heads is not None else name
+
+
+def variant_params(
+    variant: Variant, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
+) -> dict[str, Any]:
+    """
+    A variant's constructor arguments.
+
+    :param variant: the variant
+    :param n_heads: its K (``None`` for single-head variants)
+    :param base: SOUP's defaults updated with the env's hyper-parameters
+    :param overrides: from :func:`parse_overrides`
+    :return: the resolved hyper-parameters
+    """
+    model = _model_id(variant.name, n_heads)
+    params = dict(base)
+    params.update({key: _format(value, n_heads) for key, value in variant.settings.items()})
+    if n_heads is not None:
+        params["n_heads"] = n_heads
+    params.update(overrides.get("*", {}))
+    params.update(overrides.get(variant.name, {}))
+    params.update(overrides.get(model, {}))
+    if variant.algo != "soup":
+        params = {**peer_hyperparams(params), **overrides.get(variant.name, {}), **overrides.get(model, {})}
+    return params
+
+
+def _stored_variant(
+    variant: Variant, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
+) -> tuple[Variant, dict[str, Any]]:
+    """The variant a run is stored as (``same_as`` when the settings agree) and its hyper-parameters."""
+    params = variant_params(variant, n_heads, base, overrides)
+    if variant.same_as is not None:
+        twin = VARIANTS[variant.same_as]
+        if variant_params(twin, n_heads, base, overrides) == params:
+            return twin, params
+    return variant, params
+
+
+def suite_columns(spec: RunSpec, extra_heads: dict[str, Sequence[int]] | None = None) -> dict[str, tuple[str, str]]:
+    """
+    The suites a run belongs to and its column in each. A run belongs to a suite when its variant is one of the
+    suite's (directly, or as the variant another is :attr:`Variant.same_as`, e.g. ``dbddpg`` is the confidence suite's
+    ``none``) and its K is one of the suite's head counts: the default ones, or ``extra_heads`` (those a ``run
+    --heads`` asked for, as recorded in ``grid.json``).
+
+    :param spec: the run
+    :param extra_heads: suite -> head counts used beyond the suite's defaults
+    :return: suite -> (the suite's variant, its column title)
+    """
+    columns = {}
+    for suite_name, suite in SUITES.items():
+        allowed = {*suite.heads, *(extra_heads or {}).get(suite_name, ())}
+        if spec.n_heads is not None and spec.n_heads not in allowed:
+            continue
+        for name in suite.variants:
+            variant = VARIANTS[name]
+            if spec.variant in (variant.name, variant.same_as):
+                columns[suite_name] = (name, _format(variant.label, spec.n_heads))
+                break
+    return columns
 
 
 def _zoo_timesteps(env_id: str, path: str | os.PathLike | None) -> float | None:
