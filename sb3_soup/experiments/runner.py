@@ -3,26 +3,40 @@ Train one (model, seed) run in the current process: build or resume the model, l
 
 The run's folder holds ``spec.json`` (its :class:`~sb3_soup.experiments.grid.RunSpec`), ``monitor.csv``,
 ``progress.csv``, ``status.json`` (step reached, for the progress bars), ``checkpoints/`` while it runs, and at the
-end ``model.zip`` plus ``done.json``, or ``error.json`` when it failed. Heavy imports (torch, SB3) happen inside
+end ``model.zip`` plus ``done.json``, or ``error.json`` when it failed. While a process trains the run it holds an
+exclusive lock on ``run.lock``, so that two ``run`` commands given the same folder (e.g. two suites sharing runs)
+never train one run twice at once: the second reports it ``busy``. Heavy imports (torch, SB3) happen inside
 :func:`run_one` so that worker processes can limit torch's threads first.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
+import socket
 import threading
 import time
 import traceback
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Windows: runs are then not locked
+    fcntl = None  # type: ignore[assignment]
 
 SPEC_FILE = "spec.json"
 STATUS_FILE = "status.json"
 DONE_FILE = "done.json"
 ERROR_FILE = "error.json"
 FINAL_MODEL = "model.zip"
+LOCK_FILE = "run.lock"
+# A run folder without a lock file comes from an older version of the runner, which only left a heartbeat: its
+# status.json, rewritten every second or so while it trains. A "running" status younger than this counts as alive.
+LEGACY_HEARTBEAT_S = 600.0
 
 # Set by a signal handler or by the parent (see parallel.py): finish the current step, checkpoint, stop.
 STOP_REQUESTED = threading.Event()
@@ -148,9 +162,50 @@ def report_status(run_dir: str | os.PathLike, status: str, step: int, total: int
     :param total: steps in all
     :param extra: more fields
     """
-    write_json(
-        Path(run_dir) / STATUS_FILE, {"status": status, "step": int(step), "total": int(total), "time": time.time(), **extra}
-    )
+    data = {"status": status, "step": int(step), "total": int(total), "time": time.time()}
+    data.update(pid=os.getpid(), host=socket.gethostname(), **extra)
+    write_json(Path(run_dir) / STATUS_FILE, data)
+
+
+class RunBusy(RuntimeError):
+    """Another process is training this run."""
+
+
+@contextlib.contextmanager
+def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
+    """
+    Hold the run's lock while training it. The lock is an ``flock`` on ``run.lock``: the system drops it when the
+    process ends, however it ends, so a crashed run never stays locked.
+
+    :param run_dir: the run's folder
+    :raises RunBusy: when another process holds it, or when a run folder of an older runner version (no lock file)
+        has a fresh "running" heartbeat
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / LOCK_FILE
+    if not path.exists():
+        status = read_json(run_dir / STATUS_FILE) or {}
+        age = time.time() - float(status.get("time", 0.0))
+        if status.get("status") == "running" and age < LEGACY_HEARTBEAT_S:
+            raise RunBusy(f"{run_dir} is being trained by another process (status updated {age:.0f} s ago)")
+    if fcntl is None:
+        yield
+        return
+    with open(path, "a+") as stream:
+        try:
+            fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            stream.seek(0)
+            owner = stream.read().strip() or "another process"
+            raise RunBusy(f"{run_dir} is being trained by {owner}") from error
+        stream.seek(0)
+        stream.truncate()
+        stream.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        stream.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(stream, fcntl.LOCK_UN)
 
 
 def _check_spec(spec: Any, run_dir: Path) -> None:
@@ -161,7 +216,7 @@ def _check_spec(spec: Any, run_dir: Path) -> None:
     from sb3_soup.experiments.grid import RunSpec
 
     old = RunSpec(**previous).config()
-    new = json.loads(json.dumps(spec.config()))
+    new = spec.config()
     if old != new:
         changed = sorted(key for key in set(old) | set(new) if old.get(key) != new.get(key))
         raise ValueError(
@@ -191,7 +246,9 @@ def run_one(spec_data: dict[str, Any]) -> dict[str, Any]:
     ``error.json`` and returned.
 
     :param spec_data: the run's :class:`~sb3_soup.experiments.grid.RunSpec` as a dict
-    :return: ``{"key", "status": "finished" | "skipped" | "interrupted" | "failed", "step", "error"?}``
+    :return: ``{"key", "run_dir", "status", "step", "error"?}`` with status ``"finished"``, ``"skipped"`` (it was
+        finished already), ``"interrupted"`` (stopped early; resumable), ``"busy"`` (another process is training it)
+        or ``"failed"``
     """
     from sb3_soup.experiments.grid import RunSpec
 
@@ -201,16 +258,19 @@ def run_one(spec_data: dict[str, Any]) -> dict[str, Any]:
     step = 0
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        _check_spec(spec, run_dir)
-        if (run_dir / DONE_FILE).is_file():
-            done = read_json(run_dir / DONE_FILE) or {}
-            return {**result, "status": "skipped", "step": done.get("timesteps", spec.timesteps)}
-        if STOP_REQUESTED.is_set():
-            return {**result, "status": "interrupted", "step": 0}
-        (run_dir / SPEC_FILE).write_text(spec.to_json())
-        (run_dir / ERROR_FILE).unlink(missing_ok=True)
-        status, step = _train(spec, run_dir)
-        return {**result, "status": status, "step": step}
+        with run_lock(run_dir):
+            _check_spec(spec, run_dir)
+            if (run_dir / DONE_FILE).is_file():
+                done = read_json(run_dir / DONE_FILE) or {}
+                return {**result, "status": "skipped", "step": done.get("timesteps", spec.timesteps)}
+            if STOP_REQUESTED.is_set():
+                return {**result, "status": "interrupted", "step": 0}
+            (run_dir / SPEC_FILE).write_text(spec.to_json())
+            (run_dir / ERROR_FILE).unlink(missing_ok=True)
+            status, step = _train(spec, run_dir)
+            return {**result, "status": status, "step": step}
+    except RunBusy as error:
+        return {**result, "status": "busy", "step": 0, "error": str(error)}
     except Exception as error:
         message = f"{type(error).__name__}: {error}"
         write_json(run_dir / ERROR_FILE, {"error": message, "traceback": traceback.format_exc(), "time": time.time()})
