@@ -1,51 +1,86 @@
-"""Progress bars for a grid: one overall bar plus one per run, fed by the runs' ``status.json`` files."""
+"""
+Progress of a grid, fed by the runs' ``status.json`` files: in a terminal, one overall bar plus one bar per run;
+elsewhere (a log file, a pipe, CI), plain lines: one when a run ends and a summary of the running ones now and then.
+"""
 
 from __future__ import annotations
 
+import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from tqdm.auto import tqdm
 
 from sb3_soup.experiments.runner import STATUS_FILE, read_json
 
+#: Seconds between two summary lines in line mode.
+LINE_INTERVAL_S = 300.0
+
+
+def progress_mode(enabled: bool, stream: TextIO | None = None) -> str:
+    """
+    :param enabled: whether the user wants progress shown (``--no-progress`` turns it off)
+    :param stream: where it goes (default: standard error)
+    :return: ``"bars"`` when ``stream`` is a terminal, ``"lines"`` when it is not, ``"off"`` when not enabled
+    """
+    if not enabled:
+        return "off"
+    stream = stream if stream is not None else sys.stderr
+    return "bars" if stream.isatty() else "lines"
+
 
 class ProgressBoard:
     """
-    Polls the runs' status files and draws the bars. Works for any backend whose workers write to a folder this
-    process can read (local processes, or Ray on a shared filesystem).
+    Polls the runs' status files and shows how far they are. Works for any backend whose workers write to a folder
+    this process can read (local processes, or Ray on a shared filesystem).
 
     :param specs: the runs (:class:`~sb3_soup.experiments.grid.RunSpec`)
-    :param enabled: draw bars (``False``: stay silent, e.g. in tests or logs)
+    :param mode: ``"bars"`` (tqdm bars), ``"lines"`` (plain lines) or ``"off"`` (silent)
+    :param stream: where to write (default: standard error)
+    :param line_interval: seconds between summary lines in ``"lines"`` mode
     """
 
-    def __init__(self, specs: Sequence[Any], enabled: bool = True) -> None:
+    def __init__(
+        self, specs: Sequence[Any], mode: str = "bars", stream: TextIO | None = None, line_interval: float = LINE_INTERVAL_S
+    ) -> None:
+        if mode not in ("bars", "lines", "off"):
+            raise ValueError(f"mode must be 'bars', 'lines' or 'off', got {mode!r}")
         self.specs = list(specs)
-        self.enabled = enabled
+        self.mode = mode
+        self.stream = stream if stream is not None else sys.stderr
+        self.line_interval = line_interval
         self.steps = {spec.key: 0 for spec in self.specs}
+        self.totals = {spec.key: spec.timesteps for spec in self.specs}
+        self.status = {spec.key: "pending" for spec in self.specs}
+        self.ended: dict[str, dict[str, Any]] = {}
+        self.started = self.last_line = time.monotonic()
         self.bars: dict[str, Any] = {}
-        if not enabled:
+        if mode != "bars":
             return
         total = sum(spec.timesteps for spec in self.specs)
-        self.overall = tqdm(total=total, desc=f"all {len(self.specs)} runs", unit="step", position=0, dynamic_ncols=True)
+        common = dict(unit="step", unit_scale=True, dynamic_ncols=True, file=self.stream, leave=True)
+        self.overall = tqdm(total=total, desc=f"all {len(self.specs)} runs", position=0, **common)
         width = max((len(spec.key) for spec in self.specs), default=10)
         for position, spec in enumerate(self.specs, start=1):
-            self.bars[spec.key] = tqdm(
-                total=spec.timesteps,
-                desc=spec.key.ljust(width),
-                unit="step",
-                position=position,
-                leave=True,
-                dynamic_ncols=True,
-            )
+            self.bars[spec.key] = tqdm(total=spec.timesteps, desc=spec.key.ljust(width), position=position, **common)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether bars are drawn."""
+        return self.mode == "bars"
 
     def poll(self) -> None:
-        """Read every run's status file and move the bars."""
+        """Read every unfinished run's status file and move the bars (or write a summary line when it is time)."""
         for spec in self.specs:
+            if spec.key in self.ended:
+                continue
             status = read_json(Path(spec.run_dir) / STATUS_FILE)
-            if status is not None:
-                self.update(spec.key, int(status.get("step", 0)), str(status.get("status", "")))
+            if status is not None and status.get("status") == "running":
+                self.update(spec.key, int(status.get("step", 0)), "running")
+        if self.mode == "lines" and time.monotonic() - self.last_line >= self.line_interval:
+            self.write_summary()
 
     def update(self, key: str, step: int, status: str = "") -> None:
         """
@@ -53,9 +88,10 @@ class ProgressBoard:
         :param step: its steps done
         :param status: its status, shown next to the bar
         """
-        previous = self.steps.get(key, 0)
         self.steps[key] = step
-        if not self.enabled:
+        if status:
+            self.status[key] = status
+        if self.mode != "bars":
             return
         bar = self.bars[key]
         bar.n = step
@@ -63,12 +99,49 @@ class ProgressBoard:
             bar.set_postfix_str(status, refresh=False)
         bar.refresh()
         self.overall.n = sum(self.steps.values())
-        if step != previous:
-            self.overall.refresh()
+        self.overall.set_postfix_str(self._counts(), refresh=False)
+        self.overall.refresh()
+
+    def finish(self, key: str, result: dict[str, Any]) -> None:
+        """
+        A run ended: show its outcome (in line mode, one line).
+
+        :param key: the run's key
+        :param result: its result (see :func:`~sb3_soup.experiments.runner.run_one`)
+        """
+        self.ended[key] = result
+        status = str(result["status"])
+        step = int(result.get("step") or 0)
+        # A finished (or skipped) run counts in full; others count the steps they reached.
+        self.update(key, self.totals[key] if status in ("finished", "skipped") else step, status)
+        if self.mode == "lines":
+            detail = f": {result['error']}" if result.get("error") else ""
+            self._write(f"[{len(self.ended)}/{len(self.specs)}] {key}: {status} at step {step}{detail}")
+
+    def write_summary(self) -> None:
+        """One line: counts, then each running run's progress."""
+        self.last_line = time.monotonic()
+        running = [
+            f"{key} {self.steps[key]}/{self.totals[key]}"
+            for key, status in self.status.items()
+            if status == "running" and key not in self.ended
+        ]
+        elapsed = time.monotonic() - self.started
+        self._write(f"[{elapsed / 60:.0f} min] {self._counts()}" + (f"; running: {', '.join(running)}" if running else ""))
+
+    def _counts(self) -> str:
+        ended = [result["status"] for result in self.ended.values()]
+        running = sum(status == "running" and key not in self.ended for key, status in self.status.items())
+        parts = [f"{len(ended)}/{len(self.specs)} ended", f"{running} running"]
+        parts += [f"{ended.count(status)} {status}" for status in ("failed", "busy", "interrupted") if status in ended]
+        return ", ".join(parts)
+
+    def _write(self, line: str) -> None:
+        print(line, file=self.stream, flush=True)
 
     def close(self) -> None:
         """Close the bars."""
-        if self.enabled:
+        if self.mode == "bars":
             for bar in self.bars.values():
                 bar.close()
             self.overall.close()
