@@ -2,7 +2,12 @@
 Command line of the experiment runner.
 
     python -m sb3_soup.experiments run --suite models --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
+    python -m sb3_soup.experiments run --suite confidence --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
     python -m sb3_soup.experiments report runs/hopper
+    python -m sb3_soup.experiments report runs/hopper --suite confidence
+
+Suites run into the same folder share the runs they have in common (the confidence suite's ``none`` and ``adaptive``
+are the models suite's ``dbddpg`` and ``soup``): the second command trains only the runs that are new.
 """
 
 from __future__ import annotations
@@ -39,28 +44,47 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--seeds", type=parse_seeds, default=[0, 1, 2], help="a count (3 -> 0,1,2) or a list (1,5)")
     run.add_argument("--timesteps", type=int, help="steps per run (default: n_timesteps from soup.yml, else 100000)")
     run.add_argument("--out", required=True, help="experiment folder")
-    run.add_argument("--workers", type=int, help="parallel runs (default: number of cores)")
+    run.add_argument("--workers", type=int, help="parallel runs (default: number of cores available)")
     run.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
     run.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
     run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
     run.add_argument("--hyperparams-file", help="RL-Zoo style YAML (default: sb3_soup/hyperparams/soup.yml)")
-    run.add_argument("--ray-address", help="run as tasks on this Ray cluster ('auto', 'host:port', 'local', ...)")
-    run.add_argument("--no-progress", action="store_true", help="no progress bars")
+    run.add_argument(
+        "--ray-address",
+        help="run as tasks on this Ray cluster ('auto', 'host:port', 'ray://host:10001', or 'local' for a private one); "
+        "--out must be on a filesystem shared by its nodes",
+    )
+    run.add_argument("--no-progress", action="store_true", help="no progress bars or progress lines")
 
     report = commands.add_parser("report", help="Table 1 metrics, learning curves and confidence plots of a folder")
     report.add_argument("out", help="experiment folder")
+    report.add_argument(
+        "--suite",
+        choices=sorted(SUITES),
+        help="report one suite's models, with its column titles and baseline, into OUT/report-SUITE (default: all models)",
+    )
+    report.add_argument(
+        "--partial",
+        action="store_true",
+        help="also use the episodes of unfinished runs so far (marked); default: finished only",
+    )
     report.add_argument("--threshold", type=float, help="Episode threshold for every env (default: paper's, if any)")
     report.add_argument("--speedup-threshold", type=float, help="Speed Up running-average threshold for every env")
     report.add_argument("--window", type=int, default=100, help="running-average window in episodes (0: cumulative mean)")
-    report.add_argument("--baseline", default="ddpg", help="model id that Speed Up compares to (default: ddpg)")
+    report.add_argument(
+        "--baseline",
+        help="model id or suite variant Speed Up compares to (default: the suite's: ddpg, or none for confidence)",
+    )
     report.add_argument("--x", dest="x_axis", default="episodes", choices=["episodes", "timesteps"], help="curves' x-axis")
+    report.add_argument("--to", dest="report_dir", help="write the report files here (default: OUT, or OUT/report-SUITE)")
     return parser
 
 
 def run_command(args: argparse.Namespace) -> int:
     """
     :param args: parsed ``run`` arguments
-    :return: exit status: 0 when every run finished, 1 when some failed, 2 when some were interrupted
+    :return: exit status: 0 when every run finished, 1 when some failed, 2 when some are not finished yet
+        (interrupted, or busy: being trained by another ``run`` command)
     """
     from sb3_soup.experiments.parallel import run_local, run_ray
     from sb3_soup.experiments.report import write_grid
@@ -78,10 +102,10 @@ def run_command(args: argparse.Namespace) -> int:
         checkpoint_freq=args.checkpoint_freq,
         stop_after=args.stop_after,
     )
-    write_grid(args.out, specs)
-    print(f"{len(specs)} runs of {args.timesteps or specs[0].timesteps} steps -> {args.out}", file=sys.stderr)
+    write_grid(args.out, specs, args.suite, args.heads)
+    print(f"{len(specs)} runs of {specs[0].timesteps} steps -> {args.out}", file=sys.stderr)
     if args.ray_address:
-        results = run_ray(specs, args.ray_address, progress=not args.no_progress)
+        results = run_ray(specs, args.ray_address, args.workers, progress=not args.no_progress)
     else:
         results = run_local(specs, args.workers, progress=not args.no_progress)
     counts = Counter(result["status"] for result in results)
@@ -91,9 +115,11 @@ def run_command(args: argparse.Namespace) -> int:
             print(f"  FAILED {result['key']}: {result.get('error')} (see {result['run_dir']}/error.json)")
         elif result["status"] == "interrupted":
             print(f"  interrupted {result['key']} at step {result['step']}: re-run the same command to resume")
+        elif result["status"] == "busy":
+            print(f"  busy {result['key']}: {result.get('error')}; re-run the command once that one is done")
     if counts.get("failed"):
         return 1
-    return 2 if counts.get("interrupted") else 0
+    return 2 if counts.get("interrupted") or counts.get("busy") else 0
 
 
 def report_command(args: argparse.Namespace) -> int:
@@ -105,6 +131,7 @@ def report_command(args: argparse.Namespace) -> int:
 
     thresholds = None
     if args.threshold is not None or args.speedup_threshold is not None:
+        # The same thresholds for every env of the folder (the paper's fill in the one not given).
         from sb3_soup.experiments.metrics import paper_thresholds
 
         envs = {record.spec.env_id for record in collect_runs(args.out)}
@@ -115,9 +142,18 @@ def report_command(args: argparse.Namespace) -> int:
                 args.threshold if args.threshold is not None else episode,
                 args.speedup_threshold if args.speedup_threshold is not None else lower,
             )
-    data = make_report(args.out, thresholds, window=args.window or None, baseline=args.baseline, x_axis=args.x_axis)
-    print((Path(args.out) / "table.md").read_text())
-    print("Wrote " + ", ".join(data["files"]) + f" in {args.out}")
+    data = make_report(
+        args.out,
+        thresholds,
+        window=args.window or None,
+        baseline=args.baseline,
+        x_axis=args.x_axis,
+        suite=args.suite,
+        partial=args.partial,
+        report_dir=args.report_dir,
+    )
+    print((Path(data["report_dir"]) / "table.md").read_text())
+    print("Wrote " + ", ".join(data["files"]) + f" in {data['report_dir']}")
     return 0
 
 

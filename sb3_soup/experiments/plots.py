@@ -88,37 +88,46 @@ def plot_curves(
     plt.close(fig)
 
 
-def plot_confidence(panels: Mapping[str, Sequence[pd.DataFrame]], path: str | os.PathLike, smooth: int = 20) -> None:
+def plot_confidence(
+    panels: Mapping[str, Sequence[tuple[int, pd.DataFrame]]], path: str | os.PathLike, smooth: float = 0.05
+) -> None:
     """
-    One panel per adaptive model: each critic head's confidence (mean over seeds, smoothed) against timesteps.
+    Figure 6: each critic head's confidence over training, one panel per (adaptive model, seed). Heads are not
+    averaged over seeds: head i of one seed has nothing to do with head i of another.
 
-    :param panels: title -> per seed, a frame with ``time/total_timesteps`` and ``confidence/head_{i}`` columns
+    :param panels: title -> per seed, ``(seed, frame)`` with ``time/total_timesteps`` and ``confidence/head_{i}``
+        columns (the run's ``progress.csv``)
     :param path: the PNG to write
-    :param smooth: rolling-mean window over log rows (the paper's Figure 6 is smoothed too)
+    :param smooth: rolling-mean window as a fraction of the run's log rows (the paper's Figure 6 is smoothed too);
+        the raw values are drawn faintly behind
     """
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 4.5), squeeze=False)
-    for ax, (title, frames) in zip(axes[0], panels.items(), strict=True):
-        heads = sorted(
-            {col for frame in frames for col in frame.columns if col.startswith("confidence/head_")},
-            key=lambda col: int(col.rsplit("_", 1)[1]),
-        )
-        for head in heads:
-            series = []
-            for frame in frames:
-                if head not in frame:
-                    continue
-                data = frame[["time/total_timesteps", head]].dropna()
-                series.append(data.set_index("time/total_timesteps")[head].rolling(smooth, min_periods=1).mean())
-            if not series:
+    n_rows = len(panels)
+    n_cols = max(len(seeds) for seeds in panels.values())
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.8 * n_cols, 3.6 * n_rows), squeeze=False, sharey=True)
+    for row, (title, seeds) in enumerate(panels.items()):
+        for col in range(n_cols):
+            ax = axes[row][col]
+            if col >= len(seeds):
+                ax.axis("off")
                 continue
-            grid = np.unique(np.concatenate([s.index.to_numpy() for s in series]))
-            values = np.stack([np.interp(grid, s.index.to_numpy(), s.to_numpy()) for s in series])
-            ax.plot(grid, values.mean(axis=0), label=head.split("/")[1].replace("_", " "))
-        ax.set_title(title)
-        ax.set_xlabel("timesteps")
-        ax.set_ylabel("confidence")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
+            seed, frame = seeds[col]
+            heads = sorted(
+                (name for name in frame.columns if name.startswith("confidence/head_")),
+                key=lambda name: int(name.rsplit("_", 1)[1]),
+            )
+            window = max(1, int(len(frame) * smooth))
+            for head in heads:
+                data = frame[["time/total_timesteps", head]].dropna()
+                x = data["time/total_timesteps"].to_numpy()
+                (line,) = ax.plot(x, data[head].rolling(window, min_periods=1).mean(), label=head.split("_")[-1], lw=1.5)
+                ax.plot(x, data[head], color=line.get_color(), alpha=0.15, lw=0.6)
+            ax.set_title(f"{title}\nseed {seed}", fontsize="medium")
+            ax.set_xlabel("timesteps")
+            if col == 0:
+                ax.set_ylabel("confidence c_i (mean per episode)")
+            ax.grid(alpha=0.3)
+            ax.legend(title="head", fontsize="small", ncol=2 if len(heads) > 5 else 1)
+    fig.suptitle(f"Per-head confidence during training (smoothed over {smooth:.0%} of the run)", fontsize="large")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=110)
     plt.close(fig)

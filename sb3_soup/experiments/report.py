@@ -1,7 +1,14 @@
 """
 ``report``: read an experiment folder, compute Table 1's metrics, write ``table.md``, ``metrics.json``,
-``curves.png`` and (for runs that log ``confidence/head_*``) ``confidence.png``. Runs that are missing, unfinished
-or failed are listed in both the table and the JSON, never silently dropped.
+``curves.png`` and (for runs with self-adaptive confidence) ``confidence.png``.
+
+A folder may hold several suites' runs (they share the runs they have in common, see
+:attr:`~sb3_soup.experiments.grid.Variant.same_as`): ``suite`` narrows the report to one suite's columns, with that
+suite's titles and Speed Up baseline, written to ``report-<suite>/``.
+
+Runs that are missing, unfinished or failed are listed in both the table and the JSON, never silently dropped. By
+default the metrics use finished runs only; ``partial=True`` also uses the episodes that unfinished runs have logged
+so far, and marks every number that depends on them.
 """
 
 from __future__ import annotations
@@ -10,6 +17,8 @@ import dataclasses
 import json
 import math
 import os
+import re
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -17,13 +26,22 @@ from typing import Any
 import numpy as np
 
 from sb3_soup.experiments import logs
-from sb3_soup.experiments.grid import RunSpec
+from sb3_soup.experiments.grid import SUITES, RunSpec, suite_columns
 from sb3_soup.experiments.metrics import DEFAULT_WINDOW, ModelMetrics, add_speed_ups, model_metrics, paper_thresholds
 from sb3_soup.experiments.plots import Curve, plot_confidence, plot_curves
-from sb3_soup.experiments.runner import DONE_FILE, ERROR_FILE, SPEC_FILE, STATUS_FILE, read_json
+from sb3_soup.experiments.runner import (
+    DONE_FILE,
+    ERROR_FILE,
+    LEGACY_HEARTBEAT_S,
+    SPEC_FILE,
+    STATUS_FILE,
+    read_json,
+    write_json,
+)
 
 GRID_FILE = "grid.json"
 BASELINE = "ddpg"
+PARTIAL_MARK = "†"
 
 
 @dataclasses.dataclass
@@ -31,8 +49,9 @@ class RunRecord:
     """
     A run of the grid and where it stands.
 
-    :param spec: its spec
-    :param status: ``"finished"``, ``"failed"``, ``"interrupted"``, ``"running"`` or ``"missing"``
+    :param spec: its spec (``run_dir`` is its folder in the experiment folder being reported)
+    :param status: ``"finished"``, ``"failed"``, ``"interrupted"``, ``"running"``, ``"stalled"`` (its status says
+        running, but it has not been updated for a long time: the process died) or ``"missing"`` (not started)
     :param step: steps done
     :param error: the error of a failed run
     """
@@ -43,51 +62,137 @@ class RunRecord:
     error: str | None = None
 
 
-def write_grid(out: str | os.PathLike, specs: Sequence[RunSpec]) -> None:
+@dataclasses.dataclass
+class Column:
     """
-    Record the runs of an experiment folder in ``grid.json`` (merged with those already there), so that
-    ``report`` knows which runs to expect.
+    One model's column of the table.
+
+    :param model: the model id (its folder name, e.g. ``dbddpg-k5``)
+    :param label: the column title
+    :param records: its runs (one per seed)
+    :param variant: the suite's variant it stands for (e.g. ``none`` for ``dbddpg-k5`` in the confidence suite)
+    """
+
+    model: str
+    label: str
+    records: list[RunRecord]
+    variant: str | None = None
+
+
+def _run_key(data: dict[str, Any]) -> str:
+    return f"{data['model']}/seed_{data['seed']}"
+
+
+def write_grid(
+    out: str | os.PathLike, specs: Sequence[RunSpec], suite: str | None = None, heads: Sequence[int] | None = None
+) -> None:
+    """
+    Record the runs of an experiment folder in ``grid.json`` (merged with those already there, one entry per
+    ``model/seed``), so that ``report`` knows which runs to expect, and the head counts a suite was run with.
 
     :param out: the experiment folder
     :param specs: the runs
+    :param suite: the suite they were run for
+    :param heads: the head counts asked for (``--heads``), recorded for ``suite``
     """
     path = Path(out) / GRID_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
-    known = {spec["run_dir"]: spec for spec in (read_json(path) or {}).get("runs", [])}
+    grid = read_json(path) or {}
+    known = {_run_key(data): data for data in grid.get("runs", [])}
     for spec in specs:
         data = dataclasses.asdict(spec)
-        data.update(checkpoint_freq=spec.checkpoint_freq, stop_after=None)
-        known[spec.run_dir] = data
-    path.write_text(json.dumps({"runs": list(known.values())}, indent=2, sort_keys=True))
+        data.update(stop_after=None)
+        known[spec.key] = data
+    suites = dict(grid.get("suites", {}))
+    if suite is not None:
+        recorded = set(suites.get(suite, {}).get("heads", [])) | set(heads or SUITES[suite].heads)
+        suites[suite] = {"heads": sorted(recorded)}
+    write_json(path, {"runs": list(known.values()), "suites": suites})
+
+
+def _run_status(run_dir: Path) -> tuple[str, int, str | None]:
+    """A run folder's status, steps done and error."""
+    status = read_json(run_dir / STATUS_FILE) or {}
+    error = read_json(run_dir / ERROR_FILE)
+    step = int(status.get("step", 0))
+    if (run_dir / DONE_FILE).is_file():
+        return "finished", int((read_json(run_dir / DONE_FILE) or {}).get("timesteps", step)), None
+    if error is not None:
+        return "failed", step, str(error.get("error"))
+    if not status:
+        return "missing", 0, None
+    state = str(status.get("status", "running"))
+    if state == "running" and time.time() - float(status.get("time", 0.0)) > LEGACY_HEARTBEAT_S:
+        state = "stalled"
+    return state, step, None
 
 
 def collect_runs(out: str | os.PathLike) -> list[RunRecord]:
     """
     :param out: the experiment folder
-    :return: every run it expects (from ``grid.json``, else the ``spec.json`` files found), with its status
+    :return: every run it expects (from ``grid.json``, plus any ``*/seed_*/spec.json`` found), with its status;
+        each run's folder is taken as ``out/<model>/seed_<n>``, wherever it was when it ran
     """
-    grid = read_json(Path(out) / GRID_FILE)
-    if grid is not None:
-        specs = [RunSpec(**data) for data in grid["runs"]]
-    else:
-        specs = [RunSpec(**json.loads(path.read_text())) for path in sorted(Path(out).glob(f"*/seed_*/{SPEC_FILE}"))]
+    out = Path(out)
+    specs: dict[str, dict[str, Any]] = {}
+    for data in (read_json(out / GRID_FILE) or {}).get("runs", []):
+        specs[_run_key(data)] = data
+    for path in sorted(out.glob(f"*/seed_*/{SPEC_FILE}")):
+        data = read_json(path)
+        if data is not None:
+            specs[_run_key(data)] = data  # the run's own spec wins: it is what trained
     records = []
-    for spec in specs:
-        run_dir = Path(spec.run_dir)
-        if not run_dir.is_dir():  # the folder was moved: look next to grid.json
-            run_dir = Path(out) / spec.model / f"seed_{spec.seed}"
-            spec = dataclasses.replace(spec, run_dir=str(run_dir))
-        status = read_json(run_dir / STATUS_FILE) or {}
-        error = read_json(run_dir / ERROR_FILE)
-        if (run_dir / DONE_FILE).is_file():
-            records.append(RunRecord(spec, "finished", int((read_json(run_dir / DONE_FILE) or {}).get("timesteps", 0))))
-        elif error is not None:
-            records.append(RunRecord(spec, "failed", int(status.get("step", 0)), str(error.get("error"))))
-        elif status:
-            records.append(RunRecord(spec, str(status.get("status", "running")), int(status.get("step", 0))))
-        else:
-            records.append(RunRecord(spec, "missing"))
+    for key, data in specs.items():
+        spec = dataclasses.replace(RunSpec(**data), run_dir=str(out / key))
+        records.append(RunRecord(spec, *_run_status(out / key)))
     return records
+
+
+def select_columns(records: Sequence[RunRecord], suite: str | None, extra_heads: dict[str, Any]) -> list[Column]:
+    """
+    :param records: the folder's runs
+    :param suite: keep this suite's columns (``None``: every model in the folder, with its own title)
+    :param extra_heads: suite -> head counts recorded in ``grid.json``
+    :return: the columns in table order (the suite's variant order, then K)
+    """
+    columns: dict[tuple[str, str], Column] = {}
+    for record in records:
+        if suite is None:
+            variant, label = None, record.spec.label
+        else:
+            found = suite_columns(record.spec, extra_heads).get(suite)
+            if found is None:
+                continue
+            variant, label = found
+        key = (record.spec.env_id, record.spec.model)
+        columns.setdefault(key, Column(record.spec.model, label, [], variant)).records.append(record)
+    if suite is None:
+        return list(columns.values())
+    order = SUITES[suite].variants
+
+    def rank(column: Column) -> tuple[int, int]:
+        return order.index(column.variant or ""), column.records[0].spec.n_heads or 0
+
+    return sorted(columns.values(), key=rank)
+
+
+def resolve_baseline(name: str, columns: Sequence[Column], records: Sequence[RunRecord]) -> str | None:
+    """
+    :param name: a model id (``dbddpg-k5``), or a variant of the report's suite with or without its K (``none``,
+        ``none-k5``)
+    :param columns: the report's columns
+    :param records: all runs of the folder (the baseline need not be a column, e.g. DDPG for the confidence suite)
+    :return: the baseline's model id, ``None`` when the folder has no such model
+    """
+    models = {record.spec.model for record in records}
+    if name in models:
+        return name
+    match = re.fullmatch(r"(.+?)(?:-k(\d+))?", name)
+    variant, n_heads = (match.group(1), match.group(2)) if match else (name, None)
+    for column in columns:
+        if column.variant == variant and (n_heads is None or column.records[0].spec.n_heads == int(n_heads)):
+            return column.model
+    return None
 
 
 def _fmt(value: float | None, digits: int = 0) -> str:
@@ -102,155 +207,266 @@ def _crossing(value: float | None, crossed: int, n_seeds: int) -> str:
     return _fmt(value) + ("" if crossed == n_seeds else f" ({crossed}/{n_seeds})")
 
 
+def _used_records(column: Column, partial: bool) -> list[RunRecord]:
+    """The runs whose episodes a column's metrics use: the finished ones, and with ``partial`` the others too."""
+    return [record for record in column.records if record.status == "finished" or partial]
+
+
 def format_table(
+    columns: Sequence[Column],
     metrics: dict[str, dict[str, ModelMetrics]],
-    labels: dict[str, str],
     thresholds: dict[str, tuple[float | None, float | None]],
     records: Sequence[RunRecord],
     window: int | None,
-    baseline: str,
+    baseline: str | None,
+    partial_models: set[str],
 ) -> str:
     """
     Table 1's layout: one row per (env, metric), one column per model.
 
+    :param columns: the models, in order
     :param metrics: env -> model -> metrics
-    :param labels: model -> column title
     :param thresholds: env -> (Episode, Speed Up) thresholds
-    :param records: all runs, to list those not included
+    :param records: the runs to account for (those of the columns and of the baseline)
     :param window: the running-average window used
-    :param baseline: the model Speed Up is measured against
+    :param baseline: the model Speed Up is measured against (``None``: not in the folder)
+    :param partial_models: models whose numbers include unfinished runs (marked with a dagger)
     :return: Markdown
     """
-    models = list(dict.fromkeys(model for env_metrics in metrics.values() for model in env_metrics))
-    lines = ["| Env. | Metric | " + " | ".join(labels[model] for model in models) + " |", "|---|---|" + "---|" * len(models)]
+    models = list(dict.fromkeys(column.model for column in columns))
+    titles = {
+        column.model: column.label + (f" {PARTIAL_MARK}" if column.model in partial_models else "") for column in columns
+    }
+    lines = ["| Env. | Metric | " + " | ".join(titles[model] for model in models) + " |", "|---|---|" + "---|" * len(models)]
+    expected = {
+        (record.spec.env_id, record.spec.model): sum(
+            other.spec.env_id == record.spec.env_id and other.spec.model == record.spec.model for other in records
+        )
+        for record in records
+    }
     for env_id, env_metrics in metrics.items():
-        rows: dict[str, list[str]] = {"Avg Return": [], "Max Return": [], "Episode": [], "Speed Up": [], "Seeds": []}
+        rows: dict[str, list[str]] = {name: [] for name in ("Avg Return", "Max Return", "Episode", "Speed Up", "E", "Seeds")}
         for model in models:
             entry = env_metrics.get(model)
+            n_expected = expected.get((env_id, model), 0)
             if entry is None:
-                for row in rows.values():
-                    row.append("n/a")
+                for name, row in rows.items():
+                    row.append(f"0/{n_expected}" if name == "Seeds" else "n/a")
                 continue
             rows["Avg Return"].append(f"{_fmt(entry.avg_return)} ± {_fmt(entry.avg_return_std)}")
             rows["Max Return"].append(_fmt(entry.max_return))
-            rows["Episode"].append(_crossing(entry.episode, entry.episode_crossed, entry.n_seeds))
-            rows["Speed Up"].append(_fmt(entry.speed_up, 2))
-            rows["Seeds"].append(str(entry.n_seeds))
+            episode, lower = thresholds[env_id]
+            rows["Episode"].append("-" if episode is None else _crossing(entry.episode, entry.episode_crossed, entry.n_seeds))
+            rows["Speed Up"].append("(baseline)" if model == baseline else _fmt(entry.speed_up, 2))
+            rows["E"].append("-" if lower is None else _crossing(entry.speedup_episode, entry.speedup_crossed, entry.n_seeds))
+            rows["Seeds"].append(f"{entry.n_seeds}/{n_expected}")
         for index, (name, row) in enumerate(rows.items()):
             lines.append(f"| {env_id if index == 0 else ''} | {name} | " + " | ".join(row) + " |")
     lines.append("")
     running = f"last {window} episodes" if window else "all episodes so far"
+    reference = f"E_{baseline}" if baseline else "E_baseline (baseline not in this folder: Speed Up not computed)"
     for env_id, (episode, lower) in thresholds.items():
+        if episode is None or lower is None:
+            lines.append(
+                f"- {env_id}: no paper threshold for this env: pass `report --threshold T --speedup-threshold T_LOW` "
+                "for Episode, E and Speed Up."
+            )
         lines.append(
-            f"- {env_id}: **Episode** = first training episode with return >= {_fmt(episode)}; **Speed Up** = "
-            f"1 - E/E_{baseline}, E = first episode whose running average return ({running}) >= {_fmt(lower)}."
+            f"- {env_id}: **Episode** = first training episode with return >= {_fmt(episode)}; **E** = first episode "
+            f"whose running average return ({running}) >= {_fmt(lower)}; **Speed Up** = 1 - E/{reference}."
         )
     lines.append(
         "- Avg Return: mean ± std (ddof=0) over seeds of each seed's mean training-episode return; Max Return: best "
-        "single training episode over all seeds; Episode and E: mean over the seeds that crossed, (k/n) when not all did."
+        "single training episode over all seeds; Episode and E: mean over the seeds that crossed, (k/n) when not all "
+        "did; Speed Up is '-' when the model's or the baseline's running average never crossed; Seeds: runs used / "
+        "runs expected."
     )
-    excluded = [record for record in records if record.status != "finished"]
-    if excluded:
-        lines += ["", f"**Not included ({len(excluded)} runs):**", ""]
-        for record in excluded:
-            detail = f"{record.step}/{record.spec.timesteps} steps"
-            if record.error:
-                detail += f": {record.error}"
-            lines.append(f"- `{record.spec.env_id}` `{record.spec.key}`: {record.status} ({detail})")
+    lines += _not_included(records, partial_models)
     return "\n".join(lines) + "\n"
+
+
+def _not_included(records: Sequence[RunRecord], partial_models: set[str]) -> list[str]:
+    """The footnotes on unfinished runs: used with their episodes so far (partial), or left out."""
+    lines = []
+    unfinished = [record for record in records if record.status != "finished"]
+    used = [record for record in unfinished if record.spec.model in partial_models and record.status != "missing"]
+    left_out = [record for record in unfinished if record not in used]
+    if used:
+        lines += ["", f"**{PARTIAL_MARK} Partial: {len(used)} unfinished runs are included with the episodes so far:**", ""]
+        lines += [_describe(record) for record in used]
+    if left_out:
+        lines += ["", f"**Not included ({len(left_out)} runs):**", ""]
+        lines += [_describe(record) for record in left_out]
+        if not partial_models and any(record.status != "missing" for record in left_out):
+            lines += ["", "(`report --partial` computes the metrics of unfinished runs from their episodes so far.)"]
+    return lines
+
+
+def _describe(record: RunRecord) -> str:
+    detail = f"{record.step}/{record.spec.timesteps} steps"
+    if record.error:
+        detail += f": {record.error}"
+    return f"- `{record.spec.env_id}` `{record.spec.key}`: {record.status} ({detail})"
+
+
+@dataclasses.dataclass
+class _Results:
+    metrics: dict[str, dict[str, ModelMetrics]]
+    curves: dict[str, list[Curve]]
+    confidence: dict[str, list[tuple[int, Any]]]
+    partial: set[str]
+
+
+def _compute(
+    columns: Sequence[Column],
+    baseline_columns: Sequence[Column],
+    thresholds: dict[str, tuple[float | None, float | None]],
+    window: int | None,
+    partial: bool,
+) -> _Results:
+    """Every column's metrics (without Speed Up), curves and confidence panels, per env."""
+    envs = list(thresholds)
+    results = _Results({env_id: {} for env_id in envs}, {env_id: [] for env_id in envs}, {}, set())
+    for column in [*columns, *baseline_columns]:
+        for env_id in envs:
+            used = [record for record in _used_records(column, partial) if record.spec.env_id == env_id]
+            frames = [(record, logs.read_monitor(record.spec.run_dir)) for record in used]
+            frames = [(record, frame) for record, frame in frames if len(frame)]
+            if not frames:
+                continue
+            if any(record.status != "finished" for record, _ in frames):
+                results.partial.add(column.model)
+            returns = [frame["r"].to_numpy(dtype=float) for _, frame in frames]
+            entry = model_metrics(
+                returns, *thresholds[env_id], window=window, seeds=[record.spec.seed for record, _ in frames]
+            )
+            for seed_entry, (record, _) in zip(entry.per_seed, frames, strict=True):
+                seed_entry.update(status=record.status, steps=record.step, timesteps=record.spec.timesteps)
+            results.metrics[env_id][column.model] = entry
+            if column in baseline_columns:
+                continue
+            title = column.label + (" (partial)" if column.model in results.partial else "")
+            results.curves[env_id].append(Curve(title, returns, [frame["l"].to_numpy(dtype=float) for _, frame in frames]))
+            if any(_is_adaptive(record.spec) for record, _ in frames):
+                panels = [(record.spec.seed, logs.read_progress(record.spec.run_dir)) for record, _ in frames]
+                panels = [(seed, frame) for seed, frame in panels if any(col.startswith("confidence/head_") for col in frame)]
+                if panels:
+                    results.confidence[f"{title}, {env_id}"] = panels
+    return results
 
 
 def make_report(
     out: str | os.PathLike,
     thresholds: dict[str, tuple[float | None, float | None]] | None = None,
     window: int | None = DEFAULT_WINDOW,
-    baseline: str = BASELINE,
+    baseline: str | None = None,
     x_axis: str = "episodes",
+    suite: str | None = None,
+    partial: bool = False,
+    report_dir: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """
-    Compute the metrics of every finished run in ``out`` and write the report files there.
+    Compute the metrics of an experiment folder's runs and write the report files.
 
     :param out: the experiment folder
     :param thresholds: env -> (Episode, Speed Up) thresholds, overriding the paper's (Hopper, Walker2d)
     :param window: running-average window for Speed Up and the curves (``None``: cumulative mean)
-    :param baseline: the model id Speed Up is measured against
+    :param baseline: the model Speed Up is measured against: a model id or a variant of ``suite`` (default: the
+        suite's baseline, e.g. ``none`` for the confidence suite; ``ddpg`` without a suite)
     :param x_axis: x-axis of ``curves.png``: ``"episodes"`` or ``"timesteps"``
+    :param suite: report only this suite's models, with its column titles (default: every model in the folder)
+    :param partial: also use the episodes of unfinished runs (marked as partial); default: finished runs only
+    :param report_dir: where to write (default: ``out``, or ``out/report-<suite>`` with a suite)
     :return: the data written to ``metrics.json``
     """
     out = Path(out)
+    if suite is not None and suite not in SUITES:
+        raise ValueError(f"Unknown suite {suite!r}; choose from {sorted(SUITES)}")
     records = collect_runs(out)
     if not records:
         raise FileNotFoundError(f"No runs found in {out} (expected {GRID_FILE} or */seed_*/{SPEC_FILE})")
-    envs = list(dict.fromkeys(record.spec.env_id for record in records))
+    extra_heads = {
+        name: entry.get("heads", []) for name, entry in (read_json(out / GRID_FILE) or {}).get("suites", {}).items()
+    }
+    columns = select_columns(records, suite, extra_heads)
+    if not columns:
+        raise ValueError(f"No run of the {suite!r} suite in {out}")
+    baseline_name = baseline or (SUITES[suite].baseline if suite else BASELINE)
+    baseline_model = resolve_baseline(baseline_name, columns, records)
+    shown = {column.model for column in columns}
+    baseline_columns = [] if baseline_model is None or baseline_model in shown else select_columns(records, None, {})
+    baseline_columns = [column for column in baseline_columns if column.model == baseline_model]
+    envs = list(dict.fromkeys(record.spec.env_id for column in columns for record in column.records))
     resolved = {env_id: (thresholds or {}).get(env_id, paper_thresholds(env_id)) for env_id in envs}
-    labels = {record.spec.model: record.spec.label for record in records}
-    metrics: dict[str, dict[str, ModelMetrics]] = {}
-    curves: dict[str, list[Curve]] = {}
-    confidence: dict[str, list[Any]] = {}
-    for env_id in envs:
-        metrics[env_id], curves[env_id] = {}, []
-        env_records = [record for record in records if record.spec.env_id == env_id]
-        for model in dict.fromkeys(record.spec.model for record in env_records):
-            finished = [r for r in env_records if r.spec.model == model and r.status == "finished"]
-            episodes = [logs.read_monitor(r.spec.run_dir) for r in finished]
-            if not any(len(frame) for frame in episodes):
-                continue
-            returns = [frame["r"].to_numpy(dtype=float) for frame in episodes]
-            metrics[env_id][model] = model_metrics(
-                returns, *resolved[env_id], window=window, seeds=[r.spec.seed for r in finished]
-            )
-            curves[env_id].append(Curve(labels[model], returns, [frame["l"].to_numpy(dtype=float) for frame in episodes]))
-            progress = [logs.read_progress(r.spec.run_dir) for r in finished]
-            progress = [frame for frame in progress if any(col.startswith("confidence/head_") for col in frame.columns)]
-            if progress and any(_is_adaptive(r.spec) for r in finished):
-                confidence[f"{labels[model]}, {env_id}"] = progress
-        add_speed_ups(metrics[env_id], baseline)
 
+    results = _compute(columns, baseline_columns, resolved, window, partial)
+    metrics, curves, confidence, partial_models = results.metrics, results.curves, results.confidence, results.partial
+    if baseline_model is not None:
+        for env_id in envs:
+            add_speed_ups(metrics[env_id], baseline_model)
+
+    target = Path(report_dir) if report_dir is not None else (out / f"report-{suite}" if suite else out)
+    target.mkdir(parents=True, exist_ok=True)
+    accounted = [record for column in [*columns, *baseline_columns] for record in column.records]
     files = ["table.md", "metrics.json"]
-    (out / "table.md").write_text(format_table(metrics, labels, resolved, records, window, baseline))
+    table = format_table(columns, metrics, resolved, accounted, window, baseline_model, partial_models)
+    if suite:
+        table = f"Suite: **{suite}** (from `{out}`)\n\n" + table
+    (target / "table.md").write_text(table)
     if any(curves.values()):
         plot_curves(
-            {env_id: env_curves for env_id, env_curves in curves.items() if env_curves}, out / "curves.png", x_axis, window
+            {env_id: env_curves for env_id, env_curves in curves.items() if env_curves}, target / "curves.png", x_axis, window
         )
         files.append("curves.png")
     if confidence:
-        plot_confidence(confidence, out / "confidence.png")
+        plot_confidence(confidence, target / "confidence.png")
         files.append("confidence.png")
     data = {
+        "suite": suite,
         "thresholds": {env_id: {"episode": pair[0], "speed_up": pair[1]} for env_id, pair in resolved.items()},
         "window": window,
-        "baseline": baseline,
+        "baseline": baseline_model,
         "std_ddof": 0,
-        "labels": labels,
+        "partial": sorted(partial_models),
+        "labels": {column.model: column.label for column in columns},
+        "columns": [column.model for column in columns],
         "metrics": {
             env_id: {model: dataclasses.asdict(entry) for model, entry in env_metrics.items()}
             for env_id, env_metrics in metrics.items()
         },
         "runs": [
             {
-                "env_id": r.spec.env_id,
-                "model": r.spec.model,
-                "seed": r.spec.seed,
-                "status": r.status,
-                "step": r.step,
-                "timesteps": r.spec.timesteps,
-                "error": r.error,
+                "env_id": record.spec.env_id,
+                "model": record.spec.model,
+                "seed": record.spec.seed,
+                "status": record.status,
+                "step": record.step,
+                "timesteps": record.spec.timesteps,
+                "error": record.error,
             }
-            for r in records
+            for record in accounted
         ],
-        "not_included": [f"{r.spec.env_id}:{r.spec.key}" for r in records if r.status != "finished"],
+        "not_included": [
+            f"{record.spec.env_id}:{record.spec.key}"
+            for record in accounted
+            if record.status != "finished" and not (record.spec.model in partial_models and record.status != "missing")
+        ],
         "files": files,
+        "report_dir": str(target),
     }
-    (out / "metrics.json").write_text(json.dumps(data, indent=2, default=_json_default))
+    (target / "metrics.json").write_text(json.dumps(data, indent=2, default=_json_default))
     return data
 
 
 def _is_adaptive(spec: RunSpec) -> bool:
-    """Whether a run uses self-adaptive confidence (given explicitly, or by the ``soup`` preset)."""
+    """Whether a run uses self-adaptive confidence: given explicitly, else by its preset, else SOUP's default."""
+    from sb3_soup.presets import PRESETS, normalize_preset_name
+
     confidence = spec.hyperparams.get("confidence")
-    if confidence is None and spec.hyperparams.get("preset") == "soup":
-        confidence = "adaptive"
-    return spec.algo == "soup" and confidence == "adaptive"
+    preset = spec.hyperparams.get("preset")
+    if confidence is None:
+        confidence = PRESETS[normalize_preset_name(preset)]["confidence"] if preset is not None else "adaptive"
+    return spec.algo == "soup" and str(confidence).lower() == "adaptive"
 
 
 def _json_default(value: Any) -> Any:
