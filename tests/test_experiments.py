@@ -1,13 +1,18 @@
-"""Tests of the experiment runner (sb3_soup.experiments): grid, metrics, checkpoints, logs, run/resume, report."""
+"""
+Tests of the experiment runner (sb3_soup.experiments): grid, metrics, checkpoints, logs, run/resume, shared runs
+between suites, progress display, report, Ray backend.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -16,11 +21,12 @@ import pytest
 
 from sb3_soup.experiments import checkpointing, logs
 from sb3_soup.experiments.__main__ import main
-from sb3_soup.experiments.grid import VARIANTS, build_grid, load_hyperparams, parse_overrides, parse_seeds
+from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
 from sb3_soup.experiments.metrics import add_speed_ups, first_crossing, model_metrics, running_average, speed_up
-from sb3_soup.experiments.parallel import run_local
-from sb3_soup.experiments.report import collect_runs, make_report
-from sb3_soup.experiments.runner import DONE_FILE, ERROR_FILE, run_one
+from sb3_soup.experiments.parallel import available_cores, run_local
+from sb3_soup.experiments.progress import ProgressBoard, progress_mode
+from sb3_soup.experiments.report import collect_runs, make_report, write_grid
+from sb3_soup.experiments.runner import DONE_FILE, ERROR_FILE, STATUS_FILE, build_model, is_finished, run_lock, run_one
 
 try:
     from sb3_soup import SOUP  # type: ignore[attr-defined]  # noqa: F401
@@ -79,6 +85,140 @@ def test_model_metrics_hand_made():
     assert table["ddpg"].speed_up is None
 
 
+def test_running_average_window_changes_the_crossing():
+    # Window 3 by hand: (10)/1, (10+0)/2, (10+0+50)/3, (0+50+40)/3, (50+40+0)/3 = 10, 5, 20, 30, 30.
+    returns = [10.0, 0.0, 50.0, 40.0, 0.0]
+    np.testing.assert_allclose(running_average(returns, window=3), [10.0, 5.0, 20.0, 30.0, 30.0])
+    # Cumulative: 10, 5, 20, 25, 20.
+    np.testing.assert_allclose(running_average(returns, window=None), [10.0, 5.0, 20.0, 25.0, 20.0])
+    assert first_crossing(running_average(returns, window=3), 30) == 4
+    assert first_crossing(running_average(returns, window=None), 30) is None
+
+
+# ---------------------------------------------------------------- report on hand-made runs (no training)
+
+
+def _fake_run(spec: RunSpec, returns, state: str = "finished", confidence=None, step: int | None = None) -> None:
+    """A run folder as the runner leaves it, with the given training-episode returns (episodes of 10 steps)."""
+    run_dir = Path(spec.run_dir)
+    run_dir.mkdir(parents=True)
+    (run_dir / "spec.json").write_text(spec.to_json())
+    rows = "".join(f"{value},10,{index}.0\n" for index, value in enumerate(returns))
+    (run_dir / logs.MONITOR_FILE).write_text('#{"t_start": 0, "env_id": "Hopper-v4"}\nr,l,t\n' + rows)
+    step = 10 * len(returns) if step is None else step
+    status = {"finished": "finished", "failed": "failed", "interrupted": "interrupted", "running": "running"}[state]
+    (run_dir / STATUS_FILE).write_text(
+        json.dumps({"status": status, "step": step, "total": spec.timesteps, "time": time.time()})
+    )
+    if state == "finished":
+        (run_dir / DONE_FILE).write_text(json.dumps({"timesteps": spec.timesteps, "episodes": len(returns)}))
+    if state == "failed":
+        (run_dir / ERROR_FILE).write_text(json.dumps({"error": "RuntimeError: boom"}))
+    if confidence is not None:  # progress.csv with the per-head confidence of an adaptive run
+        lines = ["time/total_timesteps,confidence/head_0,confidence/head_1"]
+        lines += [f"{10 * (i + 1)},{c0},{c1}" for i, (c0, c1) in enumerate(confidence)]
+        (run_dir / logs.PROGRESS_FILE).write_text("\n".join(lines) + "\n")
+
+
+def _row(table: str, metric: str) -> list[str]:
+    line = next(line for line in table.splitlines() if f"| {metric} |" in line)
+    return [cell.strip() for cell in line.strip("|").split("|")][2:]
+
+
+@pytest.fixture
+def hand_made(tmp_path):
+    """
+    A Hopper-v4 folder (thresholds 2000 / 1000) of hand-made runs. With a running-average window of 2:
+
+    - ddpg seed 0: 0, 1000, 2500, 500 -> mean 1000; first >= 2000: episode 3; running avg 0, 500, 1750 -> E 3
+    - ddpg seed 1: 300, 900, 2100, 1500 -> mean 1200; episode 3; running avg 300, 600, 1500 -> E 3
+    - soup seed 0: 1200, 2400, 3000 -> mean 2200; episode 2; running avg 1200 -> E 1
+    - soup seed 1: 0, 1200, 600 -> mean 600; never >= 2000; running avg 0, 600, 900 -> never
+    - soup seed 2: interrupted after 1500, 5000 -> mean 3250; episode 2; running avg 1500 -> E 1
+    - td3 seed 0 failed, td3 seed 1 never started.
+    """
+    out = tmp_path / "hopper"
+    specs = build_grid("Hopper-v4", out, models=["ddpg", "soup", "td3"], heads=[2], seeds=[0, 1, 2], timesteps=1000)
+    write_grid(out, [spec for spec in specs if spec.model == "soup-k2" or spec.seed < 2], "models", [2])
+    runs = {spec.key: spec for spec in specs}
+    _fake_run(runs["ddpg/seed_0"], [0, 1000, 2500, 500])
+    _fake_run(runs["ddpg/seed_1"], [300, 900, 2100, 1500])
+    confidence = [(0.2, 0.8), (0.3, 0.7), (0.4, 0.6)]
+    _fake_run(runs["soup-k2/seed_0"], [1200, 2400, 3000], confidence=confidence)
+    _fake_run(runs["soup-k2/seed_1"], [0, 1200, 600], confidence=confidence)
+    _fake_run(runs["soup-k2/seed_2"], [1500, 5000], state="interrupted", step=400)
+    _fake_run(runs["td3/seed_0"], [], state="failed", step=0)
+    return out
+
+
+def test_report_metrics_on_hand_made_runs(hand_made):
+    data = make_report(hand_made, window=2)
+    table = (hand_made / "table.md").read_text()
+    assert table.splitlines()[0] == "| Env. | Metric | DDPG | SOUP (K=2) | TD3 |"
+    # Finished runs only: soup's interrupted seed 2 is listed, not used.
+    assert _row(table, "Avg Return") == ["1100 ± 100", "1400 ± 800", "n/a"]
+    assert _row(table, "Max Return") == ["2500", "3000", "n/a"]
+    assert _row(table, "Episode") == ["3", "2 (1/2)", "n/a"]
+    assert _row(table, "E") == ["3", "1 (1/2)", "n/a"]
+    assert _row(table, "Speed Up") == ["(baseline)", "0.67", "n/a"]  # 1 - 1/3
+    assert _row(table, "Seeds") == ["2/2", "2/3", "0/2"]
+    assert "**Not included (3 runs):**" in table
+    assert "`soup-k2/seed_2`: interrupted (400/1000 steps)" in table
+    assert "`td3/seed_0`: failed (0/1000 steps: RuntimeError: boom)" in table
+    assert "`td3/seed_1`: not started" in table
+    assert "report --partial" in table
+
+    soup = data["metrics"]["Hopper-v4"]["soup-k2"]
+    assert soup["avg_return"] == 1400 and soup["avg_return_std"] == 800 and soup["speed_up"] == pytest.approx(2 / 3)
+    assert [entry["episode"] for entry in soup["per_seed"]] == [2, None]
+    assert data["thresholds"]["Hopper-v4"] == {"episode": 2000.0, "speed_up": 1000.0} and data["baseline"] == "ddpg"
+    assert sorted(data["not_included"]) == ["Hopper-v4:soup-k2/seed_2", "Hopper-v4:td3/seed_0", "Hopper-v4:td3/seed_1"]
+    assert data["partial"] == [] and set(data["files"]) == {"table.md", "metrics.json", "curves.png", "confidence.png"}
+    for name in data["files"]:
+        assert (hand_made / name).stat().st_size > 0
+
+
+def test_report_partial_marks_unfinished_runs(hand_made, tmp_path):
+    data = make_report(hand_made, window=2, partial=True, report_dir=tmp_path / "partial")
+    table = (tmp_path / "partial" / "table.md").read_text()
+    assert table.splitlines()[0] == "| Env. | Metric | DDPG | SOUP (K=2) † | TD3 |"
+    # Seed 2 (1500, 5000) joins: means 2200, 600, 3250 -> 2016.7 ± 1089.6 (ddof=0); episodes 2, never, 2.
+    assert _row(table, "Avg Return") == ["1100 ± 100", "2017 ± 1090", "n/a"]
+    assert _row(table, "Max Return") == ["2500", "5000", "n/a"]
+    assert _row(table, "Episode") == ["3", "2 (2/3)", "n/a"]
+    assert _row(table, "Seeds") == ["2/2", "3/3", "0/2"]
+    assert "† Partial: 1 unfinished runs are included" in table and "`soup-k2/seed_2`: interrupted" in table
+    assert data["partial"] == ["soup-k2"]
+    assert sorted(data["not_included"]) == ["Hopper-v4:td3/seed_0", "Hopper-v4:td3/seed_1"]
+    assert [entry["status"] for entry in data["metrics"]["Hopper-v4"]["soup-k2"]["per_seed"]] == [
+        "finished",
+        "finished",
+        "interrupted",
+    ]
+
+
+def test_report_thresholds_and_baseline_options(hand_made, tmp_path):
+    # Thresholds 2400 / 700 and the cumulative mean as running average:
+    # Episode: ddpg seed 0 (0, 1000, 2500) -> 3, seed 1 never; soup seed 0 (1200, 2400) -> 2, seed 1 never.
+    # E: ddpg seed 0 (0, 500, 1167) -> 3, seed 1 (300, 600, 1100) -> 3; soup seed 0 (1200) -> 1, seed 1 (0, 600, 600)
+    # never. Speed Up = 1 - 1/3.
+    assert main(["report", str(hand_made), "--threshold", "2400", "--speedup-threshold", "700", "--window", "0"]) == 0
+    table = (hand_made / "table.md").read_text()
+    assert _row(table, "Episode") == ["3 (1/2)", "2 (1/2)", "n/a"]
+    assert _row(table, "E") == ["3", "1 (1/2)", "n/a"]
+    assert _row(table, "Speed Up") == ["(baseline)", "0.67", "n/a"]
+    # Window 2 instead: soup seed 1's running average is 0, 600, 900 -> E 3, so soup's E is (1 + 3) / 2 = 2; with soup
+    # as the baseline, DDPG's Speed Up is 1 - 3/2.
+    assert main(["report", str(hand_made), "--speedup-threshold", "700", "--window", "2", "--baseline", "soup-k2",
+                 "--to", str(tmp_path / "vs-soup")]) == 0  # fmt: skip
+    table = (tmp_path / "vs-soup" / "table.md").read_text()
+    assert _row(table, "E") == ["3", "2", "n/a"]
+    assert _row(table, "Speed Up") == ["-0.50", "(baseline)", "n/a"]
+    data = json.loads((tmp_path / "vs-soup" / "metrics.json").read_text())
+    assert data["thresholds"]["Hopper-v4"] == {"episode": 2000.0, "speed_up": 700.0}  # the Episode one stays the paper's
+    assert data["baseline"] == "soup-k2" and data["window"] == 2
+
+
 # ---------------------------------------------------------------- grid and hyper-parameters
 
 
@@ -110,6 +250,54 @@ def test_grid_suites_and_overrides(tmp_path):
     with pytest.raises(ValueError, match="Unknown model"):
         build_grid("Pendulum-v1", tmp_path, models=["nope"])
     assert set(VARIANTS) >= {"ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup", "td3", "none", "fixed", "decayed", "adaptive"}
+
+
+def test_confidence_suite_shares_the_models_suites_runs(tmp_path):
+    models = {spec.key: spec for spec in build_grid("Hopper-v4", tmp_path, suite="models", seeds=[0])}
+    confidence = build_grid("Hopper-v4", tmp_path, suite="confidence", seeds=[0])
+    # "none" and "adaptive" are stored as the models suite's dbddpg and soup: same folder, same spec, same identity.
+    assert [spec.model for spec in confidence] == ["dbddpg-k5", "fixed-k5", "decayed-k5", "soup-k5"]
+    assert confidence[0] == models["dbddpg-k5/seed_0"] and confidence[3] == models["soup-k5/seed_0"]
+    assert confidence[1].hyperparams["confidence"] == "fixed" and "preset" not in confidence[1].hyperparams
+    # An override aimed at the variant by name makes it a run of its own; one for every model keeps them shared.
+    apart = build_grid("Hopper-v4", tmp_path, suite="confidence", seeds=[0], overrides=parse_overrides(["none:tau=0.01"]))
+    assert apart[0].model == "none-k5" and apart[0].label == "No confidence (K=5)" and apart[3].model == "soup-k5"
+    shared = build_grid("Hopper-v4", tmp_path, suite="confidence", seeds=[0], overrides=parse_overrides(["tau=0.01"]))
+    assert shared[0].model == "dbddpg-k5"
+    # A run's identity is its settings, not its names: a spec.json written with other names still matches.
+    renamed = dataclasses.replace(confidence[0], label="DBDDPG, renamed", variant="old-name", run_dir="elsewhere")
+    assert renamed.config() == confidence[0].config()
+    assert dataclasses.replace(confidence[0], seed=1).config() != confidence[0].config()
+
+
+def test_every_suite_variant_builds_the_model_it_names():
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    expected = {  # (actor heads, critic heads, confidence, bootstrap masks on) at K=3, soup-spec.md's model table
+        "ddpg": (1, 1, "none", False),
+        "ma_bddpg": (1, 3, "none", True),
+        "multi_ddpg": (3, 1, "none", True),
+        "dbddpg": (3, 3, "none", True),
+        "soup": (3, 3, "adaptive", True),
+        "none": (3, 3, "none", True),
+        "fixed": (3, 3, "fixed", True),
+        "decayed": (3, 3, "decayed", True),
+        "adaptive": (3, 3, "adaptive", True),
+    }
+    env = DummyVecEnv([lambda: gym.make("Pendulum-v1")])
+    small = parse_overrides(
+        ["buffer_size=100", "policy_kwargs=dict(net_arch=dict(pi_body=[8], pi_head=[8], qf_body=[8, 8], qf_head=[8]))"]
+    )
+    for suite in SUITES:
+        for spec in build_grid("Pendulum-v1", "unused", suite=suite, heads=[3], seeds=[0], overrides=small):
+            if spec.algo != "soup":
+                continue
+            name = next(variant for variant in SUITES[suite].variants if spec.variant in (variant, VARIANTS[variant].same_as))
+            model = build_model(spec, env)
+            settings = (model.n_actor_heads, model.n_critic_heads, model.confidence, model.mask_prob < 1)
+            assert settings == expected[name], (suite, name)
+    env.close()
 
 
 def test_hyperparams_file(tmp_path):
@@ -177,20 +365,95 @@ def test_logs_continue_after_truncation(tmp_path):
 # ---------------------------------------------------------------- runs: failure isolation, end to end, resume
 
 
-def test_failing_run_is_reported_and_others_finish(tmp_path):
-    good, bad = build_grid(
-        "Pendulum-v1", tmp_path, models=["td3", "sb3_ddpg"], seeds=[0], timesteps=120, overrides=parse_overrides(FAST[:3])
-    )
+def _run_in_thread(target, *args, **kwargs):
+    """Start ``target`` in a thread; return the thread and a dict that gets its return value as ``"value"``."""
+    box: dict = {}
+    thread = threading.Thread(target=lambda: box.update(value=target(*args, **kwargs)), daemon=True)
+    thread.start()
+    return thread, box
+
+
+def _wait_for(predicate, timeout: float = 120.0) -> None:
+    deadline = time.time() + timeout
+    while not predicate():
+        assert time.time() < deadline, "timed out"
+        time.sleep(0.1)
+
+
+def test_failing_and_killed_runs_are_reported_and_others_finish(tmp_path):
+    good, bad, victim = build_grid(
+        "Pendulum-v1", tmp_path, models=["td3", "sb3_ddpg"], seeds=[0, 1], timesteps=120, overrides=parse_overrides(FAST[:3])
+    )[:3]
     bad = dataclasses.replace(bad, hyperparams={**bad.hyperparams, "not_a_parameter": 1})
-    results = run_local([good, bad], workers=2, progress=False)
-    assert [result["status"] for result in results] == ["finished", "failed"]
+    victim = dataclasses.replace(victim, timesteps=1_000_000)  # killed long before its end
+    status_file = Path(victim.run_dir) / STATUS_FILE
+    thread, box = _run_in_thread(run_local, [good, bad, victim], workers=3, progress=False)
+    _wait_for(lambda: status_file.is_file() and json.loads(status_file.read_text()).get("status") == "running")
+    os.kill(json.loads(status_file.read_text())["pid"], signal.SIGKILL)  # e.g. the out-of-memory killer
+    thread.join(120)
+    results = box["value"]
+    assert [result["status"] for result in results] == ["finished", "failed", "failed"]
     assert "not_a_parameter" in results[1]["error"]
     assert "not_a_parameter" in json.loads((Path(bad.run_dir) / ERROR_FILE).read_text())["traceback"]
+    assert "killed by SIGKILL" in results[2]["error"]
+    assert "SIGKILL" in json.loads((Path(victim.run_dir) / ERROR_FILE).read_text())["error"]
     assert (Path(good.run_dir) / DONE_FILE).is_file()
     # The same spec run again in-process fails the same way, and its folder keeps refusing other settings.
     assert run_one(dataclasses.asdict(bad))["status"] == "failed"
     changed = dataclasses.replace(good, timesteps=999)
     assert "other settings" in run_one(dataclasses.asdict(changed))["error"]
+
+
+def test_a_run_being_trained_elsewhere_is_busy(tmp_path):
+    (spec,) = build_grid(
+        "Pendulum-v1", tmp_path, models=["td3"], seeds=[0], timesteps=100, overrides=parse_overrides(FAST[:3])
+    )
+    run_dir = Path(spec.run_dir)
+    run_dir.mkdir(parents=True)
+    with run_lock(run_dir):  # another process (here: another open file) holds the run
+        result = run_one(dataclasses.asdict(spec))
+    assert result["status"] == "busy" and "is being trained by pid" in result["error"]
+    assert not (run_dir / ERROR_FILE).exists() and not (run_dir / "spec.json").exists()
+    # A folder of the previous runner version has no lock file, only a heartbeat: fresh means alive, stale means dead.
+    (run_dir / "run.lock").unlink()
+    heartbeat = {"status": "running", "step": 50, "total": 100, "time": time.time() - 5}
+    (run_dir / STATUS_FILE).write_text(json.dumps(heartbeat))
+    assert run_one(dataclasses.asdict(spec))["status"] == "busy"
+    (run_dir / STATUS_FILE).write_text(json.dumps({**heartbeat, "time": time.time() - 3600}))
+    assert run_one(dataclasses.asdict(spec))["status"] == "finished"
+    assert is_finished(spec)
+
+
+def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    specs = build_grid("Pendulum-v1", tmp_path, models=["td3"], seeds=[0, 1], timesteps=1000)
+    assert progress_mode(True, Terminal()) == "bars" and progress_mode(True, io.StringIO()) == "lines"
+    assert progress_mode(False, Terminal()) == "off"
+    for spec in specs:
+        Path(spec.run_dir).mkdir(parents=True)
+    (Path(specs[0].run_dir) / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 400, "total": 1000}))
+
+    terminal = Terminal()
+    board = ProgressBoard(specs, "bars", stream=terminal)
+    board.poll()
+    board.finish(specs[1].key, {"status": "failed", "step": 0, "error": "boom"})
+    board.close()
+    screen = terminal.getvalue()
+    assert "all 2 runs" in screen and "td3/seed_0" in screen and "td3/seed_1" in screen
+    assert "400/1.00k" in screen and "1 running" in screen and "failed" in screen
+
+    log = io.StringIO()
+    board = ProgressBoard(specs, "lines", stream=log, line_interval=0)
+    board.poll()  # interval 0: a summary line at every poll
+    board.finish(specs[1].key, {"status": "finished", "step": 1000})
+    lines = log.getvalue().splitlines()
+    assert lines[0].endswith("0/2 ended, 1 running; running: td3/seed_0 400/1000")
+    assert lines[1] == "[1/2] td3/seed_1: finished at step 1000"
+    assert "\r" not in log.getvalue()
+    assert available_cores() >= 1
 
 
 def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
@@ -248,6 +511,42 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
         assert (out / "confidence.png").is_file()
 
 
+def test_confidence_suite_into_the_models_folder_trains_only_what_is_new(tmp_path, capsys):
+    out = tmp_path / "runs"
+    common = ["--env", "Pendulum-v1", "--heads", "2", "--seeds", "1", "--timesteps", "200", "--out", str(out),
+              "--workers", "2", "--checkpoint-freq", "0", "--no-progress", "--hyperparams", *FAST]  # fmt: skip
+    # The models suite's DBDDPG and SOUP, as an earlier `run --suite models` left them (trained here in-process).
+    models = build_grid("Pendulum-v1", out, models=["dbddpg", "soup"], heads=[2], seeds=[0], timesteps=200,
+                        overrides=parse_overrides(FAST), checkpoint_freq=0)  # fmt: skip
+    write_grid(out, models, "models", [2])
+    for spec in models:
+        assert run_one(dataclasses.asdict(spec))["status"] == "finished"
+    trained = {spec.key: (Path(spec.run_dir) / DONE_FILE).stat().st_mtime_ns for spec in models}
+
+    capsys.readouterr()
+    assert main(["run", "--suite", "confidence", *common]) == 0
+    assert "Summary: 2 finished, 2 skipped" in capsys.readouterr().out
+    assert sorted(path.name for path in out.iterdir() if path.is_dir()) == ["dbddpg-k2", "decayed-k2", "fixed-k2", "soup-k2"]
+    assert {spec.key: (Path(spec.run_dir) / DONE_FILE).stat().st_mtime_ns for spec in models} == trained  # not retrained
+
+    # The confidence suite's report: its columns and titles, Speed Up against "No confidence" (DBDDPG).
+    assert main(["report", str(out), "--suite", "confidence", "--speedup-threshold", "-1500", "--window", "1"]) == 0
+    report = out / "report-confidence"
+    table = (report / "table.md").read_text()
+    assert (
+        "| No confidence (K=2) | Fixed confidence (K=2) | Decayed confidence (K=2) | Self-adaptive confidence (K=2) |" in table
+    )
+    assert _row(table, "Speed Up")[0] == "(baseline)"
+    data = json.loads((report / "metrics.json").read_text())
+    assert data["baseline"] == "dbddpg-k2" and data["columns"] == ["dbddpg-k2", "fixed-k2", "decayed-k2", "soup-k2"]
+    assert data["not_included"] == [] and {"curves.png", "confidence.png"} <= set(data["files"])
+    # The models suite's report from the same folder: only its models; its DDPG baseline is not there.
+    assert main(["report", str(out), "--suite", "models"]) == 0
+    table = (out / "report-models" / "table.md").read_text()
+    assert table.splitlines()[2] == "| Env. | Metric | DBDDPG (K=2) | SOUP (K=2) |"
+    assert "No Speed Up: its baseline `ddpg` is not in this folder" in table
+
+
 @pytest.mark.slow
 def test_ctrl_c_checkpoints_and_resumes(tmp_path):
     """A real SIGINT to the CLI (and its workers): the runs stop at a step, checkpoint, and resume to the end."""
@@ -272,14 +571,19 @@ def test_ctrl_c_checkpoints_and_resumes(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_backend_local(tmp_path):
+def test_ray_backend_on_a_local_instance(tmp_path, capsys):
+    """`run --ray-address local`: a private Ray instance runs the grid; a failing task does not stop the others."""
     pytest.importorskip("ray")
-    from sb3_soup.experiments.parallel import run_ray
-
-    specs = build_grid(
-        "Pendulum-v1", tmp_path, models=["td3"], seeds=[0, 1], timesteps=150, overrides=parse_overrides(FAST[:3])
-    )
-    results = run_ray(specs, "local", progress=False)
-    assert [result["status"] for result in results] == ["finished", "finished"]
-    assert all((Path(spec.run_dir) / DONE_FILE).is_file() for spec in specs)
-    assert make_report(tmp_path)["not_included"] == []
+    out = tmp_path / "runs"
+    command = ["run", "--env", "Pendulum-v1", "--models", "td3,sb3_ddpg", "--seeds", "1", "--timesteps", "250",
+               "--out", str(out), "--workers", "2", "--no-progress", "--ray-address", "local",
+               "--hyperparams", *FAST[:3], "sb3_ddpg:not_a_parameter=1"]  # fmt: skip
+    assert main(command) == 1
+    output = capsys.readouterr().out
+    assert "Summary: 1 failed, 1 finished" in output and "FAILED sb3_ddpg/seed_0" in output and "not_a_parameter" in output
+    assert (out / "td3" / "seed_0" / DONE_FILE).is_file()
+    assert "not_a_parameter" in json.loads((out / "sb3_ddpg" / "seed_0" / ERROR_FILE).read_text())["traceback"]
+    data = make_report(out, baseline="td3")
+    assert data["not_included"] == ["Pendulum-v1:sb3_ddpg/seed_0"] and list(data["metrics"]["Pendulum-v1"]) == ["td3"]
+    assert main(command) == 1  # again: the finished run is skipped without a task, the failing one fails again
+    assert "1 skipped" in capsys.readouterr().out

@@ -75,7 +75,9 @@ def make_parser() -> argparse.ArgumentParser:
         "--baseline",
         help="model id or suite variant Speed Up compares to (default: the suite's: ddpg, or none for confidence)",
     )
-    report.add_argument("--x", dest="x_axis", default="episodes", choices=["episodes", "timesteps"], help="curves' x-axis")
+    report.add_argument(
+        "--x", dest="x_axis", default="both", choices=["episodes", "timesteps", "both"], help="curves' x-axis (default: both)"
+    )
     report.add_argument("--to", dest="report_dir", help="write the report files here (default: OUT, or OUT/report-SUITE)")
     return parser
 

@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from tqdm.auto import tqdm
+
 from sb3_soup.experiments import runner
 from sb3_soup.experiments.progress import ProgressBoard, progress_mode
 
@@ -76,10 +78,10 @@ def _worker_main(spec_data: dict[str, Any], stop_event: Any, connection: Any) ->
 def _failed(spec: Any, message: str) -> dict[str, Any]:
     """Record and return the failure of a run whose worker died without reporting (so run_one could not)."""
     run_dir = Path(spec.run_dir)
-    if run_dir.is_dir():
-        runner.write_json(run_dir / runner.ERROR_FILE, {"error": message, "time": time.time()})
-        status = runner.read_json(run_dir / runner.STATUS_FILE) or {}
-        runner.report_status(run_dir, "failed", int(status.get("step", 0)), spec.timesteps, error=message)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    runner.write_json(run_dir / runner.ERROR_FILE, {"error": message, "time": time.time()})
+    status = runner.read_json(run_dir / runner.STATUS_FILE) or {}
+    runner.report_status(run_dir, "failed", int(status.get("step", 0)), spec.timesteps, error=message)
     return {"key": spec.key, "run_dir": spec.run_dir, "status": "failed", "step": 0, "error": message}
 
 
@@ -90,7 +92,10 @@ def _exit_message(exitcode: int | None) -> str:
         except ValueError:
             name = f"signal {-exitcode}"
         return f"worker process killed by {name}" + (" (out of memory?)" if name == "SIGKILL" else "")
-    return f"worker process exited with code {exitcode} without a result"
+    return (
+        f"worker process exited with code {exitcode} without a result (its error is above; a script that calls "
+        "run_local needs `if __name__ == '__main__':`)"
+    )
 
 
 def _skip_finished(specs: Sequence[Any]) -> tuple[dict[str, dict[str, Any]], list[Any]]:
@@ -152,7 +157,7 @@ def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool =
                     raise
                 interrupted = True
                 stop_event.set()
-                print("\nInterrupted: checkpointing the running runs (Ctrl-C again to abort).", file=sys.stderr)
+                tqdm.write("Interrupted: checkpointing the running runs (Ctrl-C again to abort).", file=sys.stderr)
                 continue
             for worker in [worker for worker in running if worker.connection in ready]:
                 running.remove(worker)
@@ -240,7 +245,7 @@ def run_ray(specs: Sequence[Any], address: str, workers: int | None = None, prog
     except KeyboardInterrupt:
         for ref in pending:
             ray.cancel(ref)
-        print("\nInterrupted: the runs resume from their last periodic checkpoint.", file=sys.stderr)
+        tqdm.write("Interrupted: the runs resume from their last periodic checkpoint.", file=sys.stderr)
         raise
     finally:
         board.close()

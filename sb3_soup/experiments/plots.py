@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
+from matplotlib.ticker import MaxNLocator
 
 from sb3_soup.experiments.metrics import DEFAULT_WINDOW, running_average
 
@@ -59,33 +60,63 @@ def mean_std_over_seeds(
 
 
 def plot_curves(
-    curves: dict[str, Sequence[Curve]], path: str | os.PathLike, x_axis: str = "episodes", window: int | None = DEFAULT_WINDOW
+    curves: dict[str, Sequence[Curve]],
+    path: str | os.PathLike,
+    x_axis: str = "both",
+    window: int | None = DEFAULT_WINDOW,
+    thresholds: Mapping[str, tuple[float | None, float | None]] | None = None,
 ) -> None:
     """
-    One panel per env: mean (line) ± std (shaded) over seeds of the running-average training return, per model.
+    Figures 4, 5 and 7: per env, the mean (line) ± std (shaded) over seeds of each model's running-average training
+    return, against the episode (the paper's axis) and/or the timestep (what the runs' budget is counted in).
 
     :param curves: env -> its models' curves
     :param path: the PNG to write
-    :param x_axis: ``"episodes"`` or ``"timesteps"``
+    :param x_axis: ``"episodes"``, ``"timesteps"`` or ``"both"`` (two panels per env)
     :param window: running-average window
+    :param thresholds: env -> (Episode, Speed Up) thresholds, drawn as dashed lines when they fall in the plotted range
     """
-    fig, axes = plt.subplots(1, len(curves), figsize=(6.5 * len(curves), 4.5), squeeze=False)
-    for ax, (env_id, env_curves) in zip(axes[0], curves.items(), strict=True):
-        for curve in env_curves:
-            x, mean, std = mean_std_over_seeds(curve, x_axis, window)
-            if x.size == 0:
-                continue
-            seeds = len([returns for returns in curve.returns if len(returns)])
-            (line,) = ax.plot(x, mean, label=f"{curve.label} ({seeds} seeds)")
-            ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-        ax.set_title(env_id)
-        ax.set_xlabel("episode" if x_axis == "episodes" else "timesteps")
-        ax.set_ylabel(f"average return (last {window} episodes)" if window else "average return")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
+    kinds = ["episodes", "timesteps"] if x_axis == "both" else [x_axis]
+    fig, axes = plt.subplots(len(curves), len(kinds), figsize=(6.4 * len(kinds), 4.6 * len(curves)), squeeze=False)
+    labels = list(dict.fromkeys(curve.label for env_curves in curves.values() for curve in env_curves))
+    colours = {label: f"C{index % 10}" for index, label in enumerate(labels)}
+    for row, (env_id, env_curves) in enumerate(curves.items()):
+        for col, kind in enumerate(kinds):
+            ax = axes[row][col]
+            for curve in env_curves:
+                x, mean, std = mean_std_over_seeds(curve, kind, window)
+                if x.size == 0:
+                    continue
+                seeds = len([returns for returns in curve.returns if len(returns)])
+                colour = colours[curve.label]
+                ax.plot(x, mean, color=colour, lw=1.6, label=f"{curve.label}, {seeds} seed{'s' if seeds > 1 else ''}")
+                ax.fill_between(x, mean - std, mean + std, color=colour, alpha=0.18, lw=0)
+            _threshold_lines(ax, (thresholds or {}).get(env_id, (None, None)))
+            ax.set_title(f"{env_id}: return against {'episode' if kind == 'episodes' else 'timestep'}")
+            ax.set_xlabel("training episode" if kind == "episodes" else "timestep")
+            ax.set_ylabel(
+                f"return, running mean of last {window} episodes" if window else "return, mean of all episodes so far"
+            )
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize="small", loc="best")
+            if kind == "timesteps":
+                ax.ticklabel_format(axis="x", style="sci", scilimits=(3, 3))
+            else:
+                ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    fig.suptitle("Learning curves: mean ± std over seeds (shaded)", fontsize="large")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _threshold_lines(ax: plt.Axes, thresholds: tuple[float | None, float | None]) -> None:
+    """Dashed lines at the Episode and Speed Up thresholds that fall within the data's range (not to squash it)."""
+    low, high = ax.get_ylim()
+    for value, name in zip(thresholds, ("Episode threshold", "Speed Up threshold"), strict=True):
+        if value is not None and low <= value <= high:
+            ax.axhline(value, color="0.4", ls="--", lw=0.9)
+            ax.annotate(f"{name} {value:g}", (0.99, value), xycoords=("axes fraction", "data"), ha="right", va="bottom",
+                        fontsize="x-small", color="0.3")  # fmt: skip
 
 
 def plot_confidence(

@@ -65,6 +65,8 @@ class ProgressBoard:
         width = max((len(spec.key) for spec in self.specs), default=10)
         for position, spec in enumerate(self.specs, start=1):
             self.bars[spec.key] = tqdm(total=spec.timesteps, desc=spec.key.ljust(width), position=position, **common)
+            self.bars[spec.key].set_postfix_str("pending")
+        self.seen: set[str] = set()
 
     @property
     def enabled(self) -> bool:
@@ -94,6 +96,12 @@ class ProgressBoard:
         if self.mode != "bars":
             return
         bar = self.bars[key]
+        if status == "running" and key not in self.seen:
+            # The run starts (or resumes at `step`) now: rate and ETA count from here, not from the grid's start.
+            self.seen.add(key)
+            bar.start_t = bar.last_print_t = bar._time()
+            bar.initial = bar.last_print_n = step
+            self.overall.initial += step
         bar.n = step
         if status:
             bar.set_postfix_str(status, refresh=False)
@@ -140,8 +148,8 @@ class ProgressBoard:
         print(line, file=self.stream, flush=True)
 
     def close(self) -> None:
-        """Close the bars."""
+        """Close the bars (the overall one first: it stays on top)."""
         if self.mode == "bars":
+            self.overall.close()
             for bar in self.bars.values():
                 bar.close()
-            self.overall.close()

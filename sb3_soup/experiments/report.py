@@ -220,6 +220,8 @@ def format_table(
     window: int | None,
     baseline: str | None,
     partial_models: set[str],
+    used: set[str] | None = None,
+    baseline_name: str = BASELINE,
 ) -> str:
     """
     Table 1's layout: one row per (env, metric), one column per model.
@@ -231,6 +233,8 @@ def format_table(
     :param window: the running-average window used
     :param baseline: the model Speed Up is measured against (``None``: not in the folder)
     :param partial_models: models whose numbers include unfinished runs (marked with a dagger)
+    :param used: the runs whose episodes the numbers use, as ``env_id:model/seed_N`` (default: the finished ones)
+    :param baseline_name: the baseline asked for (named when it is not in the folder)
     :return: Markdown
     """
     models = list(dict.fromkeys(column.model for column in columns))
@@ -264,16 +268,22 @@ def format_table(
             lines.append(f"| {env_id if index == 0 else ''} | {name} | " + " | ".join(row) + " |")
     lines.append("")
     running = f"last {window} episodes" if window else "all episodes so far"
-    reference = f"E_{baseline}" if baseline else "E_baseline (baseline not in this folder: Speed Up not computed)"
+    reference = f"E_{baseline}" if baseline else "E_baseline"
     for env_id, (episode, lower) in thresholds.items():
         if episode is None or lower is None:
             lines.append(
                 f"- {env_id}: no paper threshold for this env: pass `report --threshold T --speedup-threshold T_LOW` "
                 "for Episode, E and Speed Up."
             )
+            if episode is None and lower is None:
+                continue
         lines.append(
             f"- {env_id}: **Episode** = first training episode with return >= {_fmt(episode)}; **E** = first episode "
             f"whose running average return ({running}) >= {_fmt(lower)}; **Speed Up** = 1 - E/{reference}."
+        )
+    if baseline is None:
+        lines.append(
+            f"- No Speed Up: its baseline `{baseline_name}` is not in this folder (`report --baseline MODEL` picks another)."
         )
     lines.append(
         "- Avg Return: mean ± std (ddof=0) over seeds of each seed's mean training-episode return; Max Return: best "
@@ -281,28 +291,37 @@ def format_table(
         "did; Speed Up is '-' when the model's or the baseline's running average never crossed; Seeds: runs used / "
         "runs expected."
     )
-    lines += _not_included(records, partial_models)
+    if used is None:
+        used = {_record_id(record) for record in records if record.status == "finished"}
+    lines += _not_included(records, used, bool(partial_models))
     return "\n".join(lines) + "\n"
 
 
-def _not_included(records: Sequence[RunRecord], partial_models: set[str]) -> list[str]:
-    """The footnotes on unfinished runs: used with their episodes so far (partial), or left out."""
+def _record_id(record: RunRecord) -> str:
+    return f"{record.spec.env_id}:{record.spec.key}"
+
+
+def _not_included(records: Sequence[RunRecord], used: set[str], partial: bool) -> list[str]:
+    """The footnotes on the runs not in the numbers, and on the unfinished ones that are (partial)."""
     lines = []
-    unfinished = [record for record in records if record.status != "finished"]
-    used = [record for record in unfinished if record.spec.model in partial_models and record.status != "missing"]
-    left_out = [record for record in unfinished if record not in used]
-    if used:
-        lines += ["", f"**{PARTIAL_MARK} Partial: {len(used)} unfinished runs are included with the episodes so far:**", ""]
-        lines += [_describe(record) for record in used]
+    in_partial = [record for record in records if record.status != "finished" and _record_id(record) in used]
+    left_out = [record for record in records if _record_id(record) not in used]
+    if in_partial:
+        lines += ["", f"**{PARTIAL_MARK} Partial: {len(in_partial)} unfinished runs are included with the episodes so far:**"]
+        lines += [""] + [_describe(record) for record in in_partial]
     if left_out:
         lines += ["", f"**Not included ({len(left_out)} runs):**", ""]
         lines += [_describe(record) for record in left_out]
-        if not partial_models and any(record.status != "missing" for record in left_out):
+        if not partial and any(record.status not in ("missing", "finished") for record in left_out):
             lines += ["", "(`report --partial` computes the metrics of unfinished runs from their episodes so far.)"]
     return lines
 
 
 def _describe(record: RunRecord) -> str:
+    if record.status == "missing":
+        return f"- `{record.spec.env_id}` `{record.spec.key}`: not started"
+    if record.status == "finished":
+        return f"- `{record.spec.env_id}` `{record.spec.key}`: finished, but no complete episode"
     detail = f"{record.step}/{record.spec.timesteps} steps"
     if record.error:
         detail += f": {record.error}"
@@ -315,6 +334,7 @@ class _Results:
     curves: dict[str, list[Curve]]
     confidence: dict[str, list[tuple[int, Any]]]
     partial: set[str]
+    used: set[str]
 
 
 def _compute(
@@ -326,7 +346,7 @@ def _compute(
 ) -> _Results:
     """Every column's metrics (without Speed Up), curves and confidence panels, per env."""
     envs = list(thresholds)
-    results = _Results({env_id: {} for env_id in envs}, {env_id: [] for env_id in envs}, {}, set())
+    results = _Results({env_id: {} for env_id in envs}, {env_id: [] for env_id in envs}, {}, set(), set())
     for column in [*columns, *baseline_columns]:
         for env_id in envs:
             used = [record for record in _used_records(column, partial) if record.spec.env_id == env_id]
@@ -334,6 +354,7 @@ def _compute(
             frames = [(record, frame) for record, frame in frames if len(frame)]
             if not frames:
                 continue
+            results.used.update(_record_id(record) for record, _ in frames)
             if any(record.status != "finished" for record, _ in frames):
                 results.partial.add(column.model)
             returns = [frame["r"].to_numpy(dtype=float) for _, frame in frames]
@@ -346,7 +367,8 @@ def _compute(
             if column in baseline_columns:
                 continue
             title = column.label + (" (partial)" if column.model in results.partial else "")
-            results.curves[env_id].append(Curve(title, returns, [frame["l"].to_numpy(dtype=float) for _, frame in frames]))
+            legend = column.label + (" (partial: unfinished runs)" if column.model in results.partial else "")
+            results.curves[env_id].append(Curve(legend, returns, [frame["l"].to_numpy(dtype=float) for _, frame in frames]))
             if any(_is_adaptive(record.spec) for record, _ in frames):
                 panels = [(record.spec.seed, logs.read_progress(record.spec.run_dir)) for record, _ in frames]
                 panels = [(seed, frame) for seed, frame in panels if any(col.startswith("confidence/head_") for col in frame)]
@@ -360,7 +382,7 @@ def make_report(
     thresholds: dict[str, tuple[float | None, float | None]] | None = None,
     window: int | None = DEFAULT_WINDOW,
     baseline: str | None = None,
-    x_axis: str = "episodes",
+    x_axis: str = "both",
     suite: str | None = None,
     partial: bool = False,
     report_dir: str | os.PathLike | None = None,
@@ -373,7 +395,7 @@ def make_report(
     :param window: running-average window for Speed Up and the curves (``None``: cumulative mean)
     :param baseline: the model Speed Up is measured against: a model id or a variant of ``suite`` (default: the
         suite's baseline, e.g. ``none`` for the confidence suite; ``ddpg`` without a suite)
-    :param x_axis: x-axis of ``curves.png``: ``"episodes"`` or ``"timesteps"``
+    :param x_axis: x-axis of ``curves.png``: ``"episodes"``, ``"timesteps"`` or ``"both"`` (two panels per env)
     :param suite: report only this suite's models, with its column titles (default: every model in the folder)
     :param partial: also use the episodes of unfinished runs (marked as partial); default: finished runs only
     :param report_dir: where to write (default: ``out``, or ``out/report-<suite>`` with a suite)
@@ -409,7 +431,9 @@ def make_report(
     target.mkdir(parents=True, exist_ok=True)
     accounted = [record for column in [*columns, *baseline_columns] for record in column.records]
     files = ["table.md", "metrics.json"]
-    table = format_table(columns, metrics, resolved, accounted, window, baseline_model, partial_models)
+    table = format_table(
+        columns, metrics, resolved, accounted, window, baseline_model, partial_models, results.used, baseline_name
+    )
     if suite:
         table = f"Suite: **{suite}** (from `{out}`)\n\n" + table
     (target / "table.md").write_text(table)
@@ -446,11 +470,7 @@ def make_report(
             }
             for record in accounted
         ],
-        "not_included": [
-            f"{record.spec.env_id}:{record.spec.key}"
-            for record in accounted
-            if record.status != "finished" and not (record.spec.model in partial_models and record.status != "missing")
-        ],
+        "not_included": [_record_id(record) for record in accounted if _record_id(record) not in results.used],
         "files": files,
         "report_dir": str(target),
     }
