@@ -424,6 +424,31 @@ def test_a_run_being_trained_elsewhere_is_busy(tmp_path):
     assert is_finished(spec)
 
 
+def test_runs_an_older_run_command_still_holds_are_left_alone(tmp_path, capsys):
+    """
+    A run command of the previous runner version (no run lock) is training the folder: the runs in its grid that it
+    has not started yet are left to it (it would start them without checking), the ones it trains are busy.
+    """
+    out = tmp_path / "runs"
+    common = ["--env", "Pendulum-v1", "--seeds", "2", "--timesteps", "100", "--out", str(out), "--no-progress"]
+    older = build_grid("Pendulum-v1", out, models=["td3"], seeds=[0, 1], timesteps=100)
+    write_grid(out, older)  # what the older command recorded
+    running = Path(older[0].run_dir)  # and the run it is training: its spec and a fresh heartbeat, no lock file
+    running.mkdir(parents=True)
+    (running / "spec.json").write_text(older[0].to_json())
+    (running / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": time.time()}))
+    assert main(["run", "--models", "td3", *common]) == 2
+    output = capsys.readouterr().out
+    assert "Summary: 2 busy" in output
+    assert "busy td3/seed_1: an older run command still working on this folder (training td3/seed_0)" in output
+    assert not Path(older[1].run_dir).exists()
+    # Once it is gone (its heartbeat stale), nothing is held back.
+    (running / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": 0}))
+    from sb3_soup.experiments.__main__ import _held_by_legacy_runner
+
+    assert _held_by_legacy_runner(str(out), older) == {}
+
+
 def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
     class Terminal(io.StringIO):
         def isatty(self):

@@ -167,6 +167,24 @@ def report_status(run_dir: str | os.PathLike, status: str, step: int, total: int
     write_json(Path(run_dir) / STATUS_FILE, data)
 
 
+def legacy_runs_active(out: str | os.PathLike) -> list[str]:
+    """
+    The runs of an experiment folder that a runner older than the run lock is training right now: a "running"
+    status fresher than :data:`LEGACY_HEARTBEAT_S` and no lock file. Such a ``run`` command also holds runs it has not
+    started yet, and does not check for locks before it starts them.
+
+    :param out: the experiment folder
+    :return: their ``model/seed_N`` names
+    """
+    active = []
+    for status_file in sorted(Path(out).glob(f"*/seed_*/{STATUS_FILE}")):
+        status = read_json(status_file) or {}
+        fresh = time.time() - float(status.get("time", 0.0)) < LEGACY_HEARTBEAT_S
+        if status.get("status") == "running" and fresh and not (status_file.parent / LOCK_FILE).exists():
+            active.append(f"{status_file.parent.parent.name}/{status_file.parent.name}")
+    return active
+
+
 class RunBusy(RuntimeError):
     """Another process is training this run."""
 
