@@ -26,7 +26,16 @@ from sb3_soup.experiments.metrics import add_speed_ups, first_crossing, model_me
 from sb3_soup.experiments.parallel import available_cores, run_local
 from sb3_soup.experiments.progress import ProgressBoard, progress_mode
 from sb3_soup.experiments.report import collect_runs, make_report, write_grid
-from sb3_soup.experiments.runner import DONE_FILE, ERROR_FILE, STATUS_FILE, build_model, is_finished, run_lock, run_one
+from sb3_soup.experiments.runner import (
+    DONE_FILE,
+    ERROR_FILE,
+    STATUS_FILE,
+    build_model,
+    busy_reason,
+    is_finished,
+    run_lock,
+    run_one,
+)
 
 try:
     from sb3_soup import SOUP  # type: ignore[attr-defined]  # noqa: F401
@@ -411,8 +420,10 @@ def test_a_run_being_trained_elsewhere_is_busy(tmp_path):
     run_dir = Path(spec.run_dir)
     run_dir.mkdir(parents=True)
     with run_lock(run_dir):  # another process (here: another open file) holds the run
+        assert "is being trained by pid" in busy_reason(run_dir)  # what the parent checks before starting a worker
         result = run_one(dataclasses.asdict(spec))
     assert result["status"] == "busy" and "is being trained by pid" in result["error"]
+    assert busy_reason(run_dir) is None
     assert not (run_dir / ERROR_FILE).exists() and not (run_dir / "spec.json").exists()
     # A folder of the previous runner version has no lock file, only a heartbeat: fresh means alive, stale means dead.
     (run_dir / "run.lock").unlink()

@@ -99,11 +99,14 @@ def _exit_message(exitcode: int | None) -> str:
 
 
 def _skip_finished(specs: Sequence[Any]) -> tuple[dict[str, dict[str, Any]], list[Any]]:
-    """The results of the runs finished already (no worker needed), and the runs left to do."""
+    """The results of the runs that need no worker (finished already, or busy elsewhere), and the runs left to do."""
     results: dict[str, dict[str, Any]] = {}
     for spec in specs:
+        result = {"key": spec.key, "run_dir": spec.run_dir}
         if runner.is_finished(spec):
-            results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "skipped", "step": spec.timesteps}
+            results[spec.key] = {**result, "status": "skipped", "step": spec.timesteps}
+        elif (reason := runner.busy_reason(spec.run_dir)) is not None:
+            results[spec.key] = {**result, "status": "busy", "step": 0, "error": reason}
     return results, [spec for spec in specs if spec.key not in results]
 
 

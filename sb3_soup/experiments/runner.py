@@ -189,6 +189,37 @@ class RunBusy(RuntimeError):
     """Another process is training this run."""
 
 
+def _legacy_busy(run_dir: Path) -> str | None:
+    """Why a run folder without a lock file (previous runner version) counts as busy: a fresh heartbeat."""
+    status = read_json(run_dir / STATUS_FILE) or {}
+    age = time.time() - float(status.get("time", 0.0))
+    if status.get("status") == "running" and age < LEGACY_HEARTBEAT_S:
+        return f"{run_dir} is being trained by another process (status updated {age:.0f} s ago)"
+    return None
+
+
+def busy_reason(run_dir: str | os.PathLike) -> str | None:
+    """
+    Whether another process trains the run now, checked without taking the lock or creating any file (the parent
+    process uses it to avoid starting a worker for nothing; the worker's :func:`run_lock` decides).
+
+    :param run_dir: the run's folder
+    :return: why it is busy, ``None`` when it is not
+    """
+    path = Path(run_dir) / LOCK_FILE
+    if not path.exists():
+        return _legacy_busy(Path(run_dir))
+    if fcntl is None:
+        return None
+    with open(path) as stream:
+        try:
+            fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return f"{run_dir} is being trained by {stream.read().strip() or 'another process'}"
+        fcntl.flock(stream, fcntl.LOCK_UN)
+    return None
+
+
 @contextlib.contextmanager
 def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
     """
@@ -201,11 +232,9 @@ def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
     """
     run_dir = Path(run_dir)
     path = run_dir / LOCK_FILE
-    if not path.exists():
-        status = read_json(run_dir / STATUS_FILE) or {}
-        age = time.time() - float(status.get("time", 0.0))
-        if status.get("status") == "running" and age < LEGACY_HEARTBEAT_S:
-            raise RunBusy(f"{run_dir} is being trained by another process (status updated {age:.0f} s ago)")
+    reason = None if path.exists() else _legacy_busy(run_dir)
+    if reason is not None:
+        raise RunBusy(reason)
     if fcntl is None:
         yield
         return
