@@ -495,11 +495,11 @@ def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
 def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     out = tmp_path / "runs"
     command = ["run", "--env", "Pendulum-v1", "--models", MODELS, "--seeds", "2", "--timesteps", "500", "--out", str(out),
-               "--workers", "2", "--checkpoint-freq", "100", "--no-progress", "--hyperparams", *FAST]  # fmt: skip
+               "--workers", "2", "--heads", "2", "--checkpoint-freq", "100", "--no-progress", "--hyperparams", *FAST]  # fmt: skip
     # 1. Interrupted: every run stops (resumably) after 250 steps, with a checkpoint.
     assert main([*command, "--stop-after", "250"]) == 2
     models = MODELS.split(",")
-    run_dirs = sorted(path.parent for path in out.glob("*/seed_*/spec.json"))  # e.g. soup-k5/seed_0
+    run_dirs = sorted(path.parent for path in out.glob("*/seed_*/spec.json"))  # e.g. soup-k2/seed_0
     assert len(run_dirs) == 2 * len(models)
     for run_dir in run_dirs:
         latest = checkpointing.latest_checkpoint(run_dir)
@@ -532,7 +532,7 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
         assert (out / name).is_file()
     data = json.loads((out / "metrics.json").read_text())
     assert data["not_included"] == [] and data["thresholds"]["Pendulum-v1"] == {"episode": -1400, "speed_up": -1600}
-    labels = sorted({run_dir.parent.name for run_dir in run_dirs})  # the runs' labels, e.g. ddpg and soup-k5
+    labels = sorted({run_dir.parent.name for run_dir in run_dirs})  # the runs' labels, e.g. ddpg and soup-k2
     assert sorted(data["metrics"]["Pendulum-v1"]) == labels
     for label in labels:
         entry = data["metrics"]["Pendulum-v1"][label]
@@ -543,7 +543,7 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     table = (out / "table.md").read_text()
     assert table.startswith("| Env. | Metric |") and "| Pendulum-v1 | Avg Return |" in table
     if HAS_SOUP:  # the adaptive run logs its per-head confidence, drawn as Figure 6
-        assert any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k5" / "seed_0").columns)
+        assert any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k2" / "seed_0").columns)
         assert (out / "confidence.png").is_file()
 
 
