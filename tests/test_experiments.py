@@ -494,8 +494,9 @@ def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
 
 def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     out = tmp_path / "runs"
-    command = ["run", "--env", "Pendulum-v1", "--models", MODELS, "--seeds", "2", "--timesteps", "500", "--out", str(out),
-               "--workers", "2", "--heads", "2", "--checkpoint-freq", "100", "--no-progress", "--hyperparams", *FAST]  # fmt: skip
+    command = ["run", "--env", "Pendulum-v1", "--models", MODELS, "--heads", "2", "--seeds", "2", "--timesteps", "500",
+               "--out", str(out), "--workers", "2", "--checkpoint-freq", "100", "--no-progress",
+               "--hyperparams", *FAST]  # fmt: skip
     # 1. Interrupted: every run stops (resumably) after 250 steps, with a checkpoint.
     assert main([*command, "--stop-after", "250"]) == 2
     models = MODELS.split(",")
