@@ -12,6 +12,8 @@ from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.type_aliases import TensorDict
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_soup.validation import check_float, check_int
+
 
 class BootstrappedReplayBufferSamples(NamedTuple):
     observations: th.Tensor
@@ -34,10 +36,13 @@ class BootstrappedDictReplayBufferSamples(NamedTuple):
 
 
 def check_mask_args(n_masks: int, mask_prob: float) -> None:
-    if not isinstance(n_masks, (int, np.integer)) or isinstance(n_masks, bool) or n_masks < 1:
-        raise ValueError(f"n_masks must be an integer >= 1 (the number of bootstrapped heads), got {n_masks!r}")
-    if not isinstance(mask_prob, (int, float, np.floating)) or not 0.0 < float(mask_prob) <= 1.0:
-        raise ValueError(f"mask_prob must be a probability in (0, 1] (1 turns bootstrapping off), got {mask_prob!r}")
+    """
+    :param n_masks: number of masks per transition (number of head pairs), an integer >= 1
+    :param mask_prob: probability that a head sees a transition, in (0, 1]
+    """
+    check_int("n_masks", n_masks, 1, "the number of bootstrapped heads")
+    meaning = "probability that a head sees a transition; 1 turns bootstrap off"
+    check_float("mask_prob", mask_prob, 0.0, 1.0, True, False, meaning)
 
 
 class _MaskStorage:

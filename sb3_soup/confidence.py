@@ -8,10 +8,10 @@ The E-Q value of candidate k is ``v[k] = sum_i W[i, k] * V[i, k]`` where ``V[i, 
 Write your own by subclassing :class:`ConfidenceStrategy` and implementing :meth:`ConfidenceStrategy.weights`.
 """
 
+import math
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-import numpy as np
 import torch as th
 from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
@@ -20,6 +20,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_soup.networks import mlp
+from sb3_soup.validation import check_bool, check_float
 
 if TYPE_CHECKING:
     from sb3_soup.policies import SOUPPolicy
@@ -117,11 +118,7 @@ class FixedConfidence(_PairedStrategy):
 
     def __init__(self, alpha: float = 0.5):
         super().__init__()
-        if not isinstance(alpha, (int, float)) or not 0.0 < alpha < 1.0:
-            raise ValueError(
-                f"alpha must be a float in (0, 1) (fixed confidence of a head in its own candidate), got {alpha!r}"
-            )
-        self.alpha = float(alpha)
+        self.alpha = check_float("alpha", alpha, 0.0, 1.0, True, True, "fixed confidence of a head in its own candidate")
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         alpha = th.tensor(self.alpha, device=q_matrix.device)
@@ -141,9 +138,7 @@ class DecayedConfidence(_PairedStrategy):
 
     def __init__(self, decay: float = 0.9995):
         super().__init__()
-        if not isinstance(decay, (int, float)) or not 0.0 < decay <= 1.0:
-            raise ValueError(f"decay must be a float in (0, 1] (per-step decay of the confidence), got {decay!r}")
-        self.decay = float(decay)
+        self.decay = check_float("decay", decay, 0.0, 1.0, True, False, "per-step decay of the decayed confidence")
         self.register_buffer("n_steps", th.zeros((), dtype=th.float64))
 
     @property
@@ -217,22 +212,14 @@ class AdaptiveConfidence(ConfidenceStrategy):
         eps: float = 1e-3,
     ):
         super().__init__()
-        if not isinstance(lr, (int, float)) or not lr > 0:
-            raise ValueError(f"confidence_lr must be a float > 0, got {lr!r}")
-        if not isinstance(temperature, (int, float)) or not temperature > 0:
-            raise ValueError(f"temperature must be a float > 0 (softmax temperature of the selection), got {temperature!r}")
-        if not isinstance(baseline, (bool, np.bool_)):
-            raise ValueError(f"confidence_baseline must be True or False, got {baseline!r}")
-        if not 0.0 < baseline_rate <= 1.0:
-            raise ValueError(f"baseline_rate must be in (0, 1], got {baseline_rate!r}")
-        if not 0.0 < eps < 1.0:
-            raise ValueError(f"eps must be in (0, 1), got {eps!r}")
-        self.lr = float(lr)
-        self.temperature = float(temperature)
-        self.baseline = bool(baseline)
-        self.baseline_rate = float(baseline_rate)
+        self.lr = check_float("confidence_lr", lr, 0.0, math.inf, True, True, "confidence network learning rate")
+        self.temperature = check_float(
+            "temperature", temperature, 0.0, math.inf, True, True, "softmax temperature of the selection"
+        )
+        self.baseline = check_bool("confidence_baseline", baseline, "running-mean reward baseline in REINFORCE")
+        self.baseline_rate = check_float("baseline_rate", baseline_rate, 0.0, 1.0, True, False, "update rate of the baseline")
+        self.eps = check_float("eps", eps, 0.0, 1.0, True, True, "lower clamp of the confidence")
         self.net_arch = [256, 128] if net_arch is None else list(net_arch)
-        self.eps = eps
         self.register_buffer("reward_baseline", th.zeros(()))
         self.register_buffer("baseline_ready", th.zeros((), dtype=th.bool))
 
@@ -284,6 +271,49 @@ class AdaptiveConfidence(ConfidenceStrategy):
         return {"confidence_loss": loss.item(), "confidence_baseline": float(self.reward_baseline)}
 
 
+def check_strategy(confidence: Any) -> None:
+    """
+    Refuse, with a message saying what is expected, anything that is neither a strategy name nor a usable
+    :class:`ConfidenceStrategy` instance.
+
+    :param confidence: "none", "fixed", "decayed", "adaptive" (any case), or a :class:`ConfidenceStrategy` instance
+    """
+    accepted = f"one of {CONFIDENCE_STRATEGIES} or an instance of a sb3_soup.ConfidenceStrategy subclass"
+    if isinstance(confidence, str):
+        if confidence.lower() not in CONFIDENCE_STRATEGIES:
+            raise ValueError(f"confidence must be {accepted}, got {confidence!r}")
+        return
+    if not isinstance(confidence, ConfidenceStrategy):
+        hint = (
+            " (it has a weights method: subclass sb3_soup.ConfidenceStrategy, an nn.Module, so that its state is saved)"
+            if callable(getattr(confidence, "weights", None))
+            else ""
+        )
+        raise ValueError(
+            f"confidence must be {accepted} implementing weights(obs, q_matrix) -> W, "
+            f"got {confidence!r} of type {type(confidence).__name__}{hint}"
+        )
+    if "_parameters" not in vars(confidence):
+        raise ValueError(
+            f"confidence: {type(confidence).__name__}.__init__ must call super().__init__() "
+            "(a ConfidenceStrategy is an nn.Module, whose state is saved with the policy)"
+        )
+
+
+def check_update_logs(strategy: ConfidenceStrategy, logs: Any) -> dict[str, float]:
+    """
+    :param strategy: the strategy whose :meth:`ConfidenceStrategy.update` returned ``logs``
+    :param logs: what it returned
+    :return: ``logs``, once checked to be a dict of names to numbers
+    """
+    if not isinstance(logs, dict) or not all(isinstance(key, str) for key in logs):
+        raise ValueError(
+            f"{type(strategy).__name__}.update must return a dict of values to log (name -> float; {{}} for none), "
+            f"got {logs!r} ({type(logs).__name__})"
+        )
+    return logs
+
+
 def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> ConfidenceStrategy:
     """
     Build a strategy from its name (keyword arguments are passed to it; unused ones are ignored) or check a
@@ -291,13 +321,9 @@ def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> Co
 
     :param confidence: "none", "fixed", "decayed", "adaptive", or a :class:`ConfidenceStrategy` instance
     """
+    check_strategy(confidence)
     if isinstance(confidence, ConfidenceStrategy):
         return confidence
-    if not isinstance(confidence, str):
-        raise TypeError(
-            f"confidence must be one of {CONFIDENCE_STRATEGIES} or a sb3_soup.ConfidenceStrategy instance, "
-            f"got {confidence!r} of type {type(confidence).__name__}"
-        )
     name = confidence.lower()
     if name == "none":
         return NoConfidence()
@@ -305,8 +331,6 @@ def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> Co
         return FixedConfidence(alpha=kwargs.get("alpha", 0.5))
     if name == "decayed":
         return DecayedConfidence(decay=kwargs.get("decay", 0.9995))
-    if name == "adaptive":
-        return AdaptiveConfidence(
-            lr=kwargs.get("lr", 1e-4), temperature=kwargs.get("temperature", 1.0), baseline=kwargs.get("baseline", True)
-        )
-    raise ValueError(f"confidence must be one of {CONFIDENCE_STRATEGIES} or a ConfidenceStrategy instance, got {confidence!r}")
+    return AdaptiveConfidence(
+        lr=kwargs.get("lr", 1e-4), temperature=kwargs.get("temperature", 1.0), baseline=kwargs.get("baseline", True)
+    )

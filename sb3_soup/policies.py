@@ -2,6 +2,7 @@
 
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
@@ -12,6 +13,7 @@ from torch import nn
 from sb3_soup.confidence import ConfidenceStrategy, make_confidence
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, EnsembleModel
 from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
+from sb3_soup.validation import check_int
 
 # The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
 DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
@@ -29,15 +31,46 @@ def parse_net_arch(net_arch: dict[str, list[int]] | None) -> dict[str, list[int]
     unknown = set(net_arch) - set(DEFAULT_NET_ARCH)
     if unknown:
         raise ValueError(f"net_arch has unknown keys {sorted(unknown)}; accepted keys: {sorted(DEFAULT_NET_ARCH)}")
-    arch = {key: list(net_arch.get(key, value)) for key, value in DEFAULT_NET_ARCH.items()}
-    for key, sizes in arch.items():
-        if not all(isinstance(size, int) and not isinstance(size, bool) and size > 0 for size in sizes):
-            raise ValueError(f"net_arch[{key!r}] must be a list of positive ints, got {sizes!r}")
+    arch = {}
+    for key, default in DEFAULT_NET_ARCH.items():
+        sizes = net_arch.get(key, default)
+        valid = isinstance(sizes, (list, tuple)) and all(
+            isinstance(size, (int, np.integer)) and not isinstance(size, (bool, np.bool_)) and size > 0 for size in sizes
+        )
+        if not valid:
+            raise ValueError(f"net_arch[{key!r}] must be a list of positive ints (layer sizes), e.g. {default}; got {sizes!r}")
+        arch[key] = [int(size) for size in sizes]
     if len(arch["qf_body"]) < 2:
         raise ValueError(
-            f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {arch['qf_body']}"
+            f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), e.g. [256, 256]; "
+            f"got {arch['qf_body']}"
         )
     return arch
+
+
+def check_weights(strategy: ConfidenceStrategy, weights: Any, q_matrix: th.Tensor) -> None:
+    """
+    Refuse what a confidence strategy's ``weights`` returned when it is not a tensor broadcastable to ``V``
+    (a few attribute reads: no device synchronisation).
+
+    :param strategy: the strategy
+    :param weights: what its ``weights(obs, q_matrix)`` returned
+    :param q_matrix: ``V`` of shape ``(B, Kc, Ka)``
+    """
+    if not isinstance(weights, th.Tensor):
+        raise ValueError(
+            f"{type(strategy).__name__}.weights must return a torch.Tensor broadcastable to (B, Kc, Ka) = "
+            f"{tuple(q_matrix.shape)}, got {type(weights).__name__}"
+        )
+    try:
+        broadcastable = th.broadcast_shapes(weights.shape, q_matrix.shape) == q_matrix.shape
+    except RuntimeError:
+        broadcastable = False
+    if not broadcastable:
+        raise ValueError(
+            f"{type(strategy).__name__}.weights returned shape {tuple(weights.shape)}, "
+            f"expected one broadcastable to (B, Kc, Ka) = {tuple(q_matrix.shape)}"
+        )
 
 
 def e_critic(q_matrix: th.Tensor, weights: th.Tensor) -> th.Tensor:
@@ -129,9 +162,13 @@ class SOUPPolicy(BasePolicy):
             squash_output=True,
             normalize_images=normalize_images,
         )
-        for name, value in (("n_actor_heads", n_actor_heads), ("n_critic_heads", n_critic_heads)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        n_actor_heads = check_int("n_actor_heads", n_actor_heads, 1, "number of actor heads")
+        n_critic_heads = check_int("n_critic_heads", n_critic_heads, 1, "number of critic heads")
+        if not (isinstance(activation_fn, type) and issubclass(activation_fn, nn.Module)):
+            raise ValueError(
+                f"activation_fn must be an nn.Module class such as nn.LeakyReLU (the class, not an instance), "
+                f"got {activation_fn!r}"
+            )
         if n_actor_heads != n_critic_heads and min(n_actor_heads, n_critic_heads) > 1:
             raise ValueError(
                 "actor head k is paired with critic head k: n_actor_heads and n_critic_heads must be equal or one of them 1, "
@@ -232,15 +269,7 @@ class SOUPPolicy(BasePolicy):
             return Selection(candidates[0], th.zeros(candidates.shape[1], dtype=th.long, device=candidates.device), None, None)
         q_matrix = self.critic.q_matrix(obs, candidates)  # (B, Kc, Ka)
         weights = self.confidence.weights(obs, q_matrix)  # broadcastable to (B, Kc, Ka)
-        try:
-            broadcastable = th.broadcast_shapes(weights.shape, q_matrix.shape) == q_matrix.shape
-        except RuntimeError:
-            broadcastable = False
-        if not broadcastable:
-            raise ValueError(
-                f"{type(self.confidence).__name__}.weights returned shape {tuple(weights.shape)}, "
-                f"expected one broadcastable to (B, Kc, Ka) = {tuple(q_matrix.shape)}"
-            )
+        check_weights(self.confidence, weights, q_matrix)
         actions, chosen = e_actor(candidates, e_critic(q_matrix, weights))
         return Selection(actions, chosen, q_matrix, weights)
 

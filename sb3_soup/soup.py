@@ -1,6 +1,11 @@
 """SOUP: Self-Adaptive Double Bootstrapped DDPG, as a Stable-Baselines3 off-policy algorithm."""
 
+import inspect
+import io
 import math
+import pathlib
+import warnings
+from collections.abc import Callable, Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -10,6 +15,9 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import is_image_space
+from stable_baselines3.common.save_util import load_from_pkl
+from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import update_learning_rate
 
@@ -25,30 +33,26 @@ from sb3_soup.buffers import (
     BootstrappedReplayBufferSamples,
     check_mask_args,
 )
-from sb3_soup.confidence import CONFIDENCE_STRATEGIES, ConfidenceRollout, ConfidenceStrategy
+from sb3_soup.confidence import ConfidenceRollout, ConfidenceStrategy, check_strategy, check_update_logs
 from sb3_soup.networks import EnsembleActor, EnsembleCritic
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, soft_update
 from sb3_soup.presets import normalize_preset_name, resolve_preset
+from sb3_soup.saving import (
+    SAVE_FORMAT_VERSION,
+    capture_rng_state,
+    check_saved_format,
+    package_version,
+    read_saved_data,
+    restore_rng_state,
+)
+from sb3_soup.validation import check_bool, check_choice, check_float, check_int, check_learning_rate
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
+__version__ = package_version()
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
 TRAIN_HEADS = ("active", "all")
-
-
-def _check_int(name: str, value: Any, minimum: int = 1) -> None:
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-
-
-def _check_float(name: str, value: Any, low: float, high: float, low_open: bool, high_open: bool, meaning: str) -> None:
-    ok = isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and math.isfinite(value)
-    if ok:
-        ok = (value > low if low_open else value >= low) and (value < high if high_open else value <= high)
-    if not ok:
-        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
-        raise ValueError(f"{name} must be a float in {interval} ({meaning}), got {value!r}")
 
 
 def _all_finite(value: np.ndarray | dict[str, np.ndarray]) -> bool:
@@ -56,6 +60,125 @@ def _all_finite(value: np.ndarray | dict[str, np.ndarray]) -> bool:
         return all(_all_finite(item) for item in value.values())
     array = np.asarray(value)
     return not np.issubdtype(array.dtype, np.floating) or bool(np.isfinite(array).all())
+
+
+def _check_train_freq(name: str, value: Any) -> Any:
+    if isinstance(value, (tuple, list)) and len(value) == 2 and isinstance(value[1], str):
+        check_int(f"{name}[0]", value[0], 1, "how many steps or episodes between training rounds")
+        check_choice(f"{name}[1]", value[1], ("step", "episode"), "unit of train_freq")
+        return value
+    try:
+        return check_int(name, value, 1)
+    except ValueError:
+        raise ValueError(
+            f"{name} must be an integer >= 1 (train every n steps) or a tuple (n, 'step' | 'episode'), "
+            f"got {value!r} ({type(value).__name__})"
+        ) from None
+
+
+def _check_seed(name: str, value: Any) -> int | None:
+    if value is None:
+        return None
+    seed = check_int(name, value, 0, "or None")
+    if seed >= 2**32:
+        raise ValueError(f"{name} must be None or an integer in [0, 2**32 - 1] (NumPy's seed range), got {value!r}")
+    return seed
+
+
+def _check_action_noise(name: str, value: Any) -> Any:
+    if value is not None and not isinstance(value, ActionNoise):
+        raise ValueError(
+            f"{name} must be None (the built-in decayed Gaussian noise: noise_std, noise_decay, noise_std_min) or an "
+            f"instance of stable_baselines3.common.noise.ActionNoise, got {value!r} ({type(value).__name__})"
+        )
+    return value
+
+
+def _check_replay_buffer_kwargs(name: str, value: Any) -> Any:
+    if value is None:
+        return value
+    if not isinstance(value, dict):
+        raise ValueError(f"{name} must be None or a dict of replay buffer arguments, got {value!r} ({type(value).__name__})")
+    reserved = sorted({"n_masks", "mask_prob"} & set(value))
+    if reserved:
+        raise ValueError(
+            f"{name} must not set {reserved}: SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
+        )
+    return value
+
+
+def _check_policy_kwargs(name: str, value: Any) -> Any:
+    if value is None:
+        return value
+    if not isinstance(value, dict):
+        raise ValueError(f"{name} must be None or a dict of policy arguments, got {value!r} ({type(value).__name__})")
+    reserved = sorted({"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"} & set(value))
+    if reserved:
+        raise ValueError(f"{name} must not set {reserved}: set them as SOUP arguments (n_heads, preset, confidence...)")
+    return value
+
+
+def _float_check(low: float, high: float, low_open: bool, high_open: bool, meaning: str) -> Callable[[str, Any], float]:
+    return lambda name, value: check_float(name, value, low, high, low_open, high_open, meaning)
+
+
+def _int_check(minimum: int, meaning: str) -> Callable[[str, Any], int]:
+    return lambda name, value: check_int(name, value, minimum, meaning)
+
+
+def _bool_check(meaning: str) -> Callable[[str, Any], bool]:
+    return lambda name, value: check_bool(name, value, meaning)
+
+
+def _lr_check(name: str, value: Any) -> Any:
+    check_learning_rate(name, value)
+    return value
+
+
+# One check per constructor argument (by name): SOUP(...) and SOUP.load(..., **kwargs) use them
+_ARGUMENT_CHECKS: dict[str, Callable[[str, Any], Any]] = {
+    "learning_rate": _lr_check,
+    "critic_learning_rate": _lr_check,
+    "buffer_size": _int_check(1, "replay buffer size"),
+    "learning_starts": _int_check(0, "steps of random actions before learning"),
+    "batch_size": _int_check(1, "minibatch size"),
+    "tau": _float_check(0.0, 1.0, True, False, "soft update coefficient"),
+    "gamma": _float_check(0.0, 1.0, False, False, "discount factor"),
+    "train_freq": _check_train_freq,
+    "gradient_steps": _int_check(-1, "gradient steps after each rollout, -1: as many as env steps"),
+    "action_noise": _check_action_noise,
+    "replay_buffer_kwargs": _check_replay_buffer_kwargs,
+    "optimize_memory_usage": _bool_check("memory efficient replay buffer"),
+    "alpha": _float_check(0.0, 1.0, True, True, "fixed confidence of a head in its own candidate"),
+    "decay": _float_check(0.0, 1.0, True, False, "per-step decay of the decayed confidence"),
+    "temperature": _float_check(0.0, math.inf, True, True, "softmax temperature of the selection"),
+    "confidence_lr": _float_check(0.0, math.inf, True, True, "confidence network learning rate"),
+    "confidence_baseline": _bool_check("running-mean reward baseline in REINFORCE"),
+    "mask_prob": _float_check(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off"),
+    "train_heads": lambda name, value: check_choice(name, value, TRAIN_HEADS, "which head pairs each gradient step trains"),
+    "noise_std": _float_check(0.0, math.inf, False, True, "initial exploration noise std"),
+    "noise_decay": _float_check(0.0, 1.0, True, False, "noise std decay per env step"),
+    "noise_std_min": _float_check(0.0, math.inf, False, True, "lowest exploration noise std"),
+    "check_finite": _bool_check("raise at the first NaN/inf observation, reward, Q value or loss"),
+    "stats_window_size": _int_check(1, "episodes averaged in the rollout logs"),
+    "policy_kwargs": _check_policy_kwargs,
+    "seed": _check_seed,
+}
+
+# Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
+_STRUCTURAL_ARGUMENTS = (
+    "n_heads",
+    "n_actor_heads",
+    "n_critic_heads",
+    "preset",
+    "confidence",
+    "alpha",
+    "decay",
+    "temperature",
+    "confidence_lr",
+    "confidence_baseline",
+    "policy",
+)
 
 
 class SOUP(OffPolicyAlgorithm):
@@ -173,7 +296,19 @@ class SOUP(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ):
         settings = self._resolve_settings(n_heads, n_actor_heads, n_critic_heads, preset, confidence, mask_prob)
-        self._check_arguments(
+        args = self._check_arguments(
+            learning_rate=learning_rate,
+            critic_learning_rate=critic_learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
             alpha=alpha,
             decay=decay,
             temperature=temperature,
@@ -184,32 +319,29 @@ class SOUP(OffPolicyAlgorithm):
             noise_decay=noise_decay,
             noise_std_min=noise_std_min,
             check_finite=check_finite,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
+            stats_window_size=stats_window_size,
+            policy_kwargs=policy_kwargs,
+            seed=seed,
         )
         policy_kwargs = dict(policy_kwargs or {})
-        reserved = {"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"} & set(policy_kwargs)
-        if reserved:
-            raise ValueError(f"set {sorted(reserved)} as SOUP arguments, not in policy_kwargs")
 
         super().__init__(
             policy,
             env,
             learning_rate,
-            buffer_size,
-            learning_starts,
-            batch_size,
-            tau,
-            gamma,
+            args["buffer_size"],
+            args["learning_starts"],
+            args["batch_size"],
+            args["tau"],
+            args["gamma"],
             train_freq,
-            gradient_steps,
+            args["gradient_steps"],
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
+            optimize_memory_usage=args["optimize_memory_usage"],
             policy_kwargs=policy_kwargs,
-            stats_window_size=stats_window_size,
+            stats_window_size=args["stats_window_size"],
             tensorboard_log=tensorboard_log,
             verbose=verbose,
             device=device,
@@ -219,30 +351,37 @@ class SOUP(OffPolicyAlgorithm):
             support_multi_env=True,
         )
         self.critic_learning_rate = critic_learning_rate
-        self.n_heads = n_heads
+        self.n_heads: int = settings["n_heads"]
         self.preset_name: str | None = settings["preset"]
         self.n_actor_heads: int = settings["n_actor_heads"]
         self.n_critic_heads: int = settings["n_critic_heads"]
         self.confidence = settings["confidence"]
         self.mask_prob: float = settings["mask_prob"]
-        self.alpha = alpha
-        self.decay = decay
-        self.temperature = temperature
-        self.confidence_lr = confidence_lr
-        self.confidence_baseline = confidence_baseline
-        self.train_heads = train_heads
-        self.noise_std = noise_std
-        self.noise_decay = noise_decay
-        self.noise_std_min = noise_std_min
-        self.check_finite = check_finite
-        self.exploration_std = noise_std
+        self.alpha: float = args["alpha"]
+        self.decay: float = args["decay"]
+        self.temperature: float = args["temperature"]
+        self.confidence_lr: float = args["confidence_lr"]
+        self.confidence_baseline: bool = args["confidence_baseline"]
+        self.train_heads: str = args["train_heads"]
+        self.noise_std: float = args["noise_std"]
+        self.noise_decay: float = args["noise_decay"]
+        self.noise_std_min: float = args["noise_std_min"]
+        self.check_finite: bool = args["check_finite"]
+        self.exploration_std = self.noise_std
+        # Saved with the model: which sb3-soup wrote it, in which save format (see sb3_soup.saving)
+        self._sb3_soup_format = SAVE_FORMAT_VERSION
+        self._sb3_soup_version = __version__
 
         self.policy_kwargs.update(
             n_actor_heads=self.n_actor_heads,
             n_critic_heads=self.n_critic_heads,
             confidence=self.confidence,
             confidence_kwargs=dict(
-                alpha=alpha, decay=decay, lr=confidence_lr, temperature=temperature, baseline=confidence_baseline
+                alpha=self.alpha,
+                decay=self.decay,
+                lr=self.confidence_lr,
+                temperature=self.temperature,
+                baseline=self.confidence_baseline,
             ),
         )
         # Per env: the head pair trained during its current episode (drawn at each episode start)
@@ -253,6 +392,7 @@ class SOUP(OffPolicyAlgorithm):
         self._reset_ensemble_stats()
 
         if _init_setup_model:
+            self._warn_about_images()
             self._setup_model()
 
     @staticmethod
@@ -265,19 +405,11 @@ class SOUP(OffPolicyAlgorithm):
         mask_prob: float | None,
     ) -> dict[str, Any]:
         """Head counts, confidence and mask probability from the explicit arguments and the preset."""
-        _check_int("n_heads", n_heads)
-        for name, value in (("n_actor_heads", n_actor_heads), ("n_critic_heads", n_critic_heads)):
-            if value is not None:
-                _check_int(name, value)
-        if isinstance(confidence, str) and confidence.lower() not in CONFIDENCE_STRATEGIES:
-            raise ValueError(
-                f"confidence must be one of {CONFIDENCE_STRATEGIES} or a ConfidenceStrategy instance, got {confidence!r}"
-            )
-        if confidence is not None and not isinstance(confidence, (str, ConfidenceStrategy)):
-            raise ValueError(
-                f"confidence must be one of {CONFIDENCE_STRATEGIES} or an instance of sb3_soup.ConfidenceStrategy "
-                f"(implementing weights(obs, q_matrix) -> W), got {confidence!r} of type {type(confidence).__name__}"
-            )
+        n_heads = check_int("n_heads", n_heads, 1, "number of bootstrapped heads K")
+        n_actor_heads = None if n_actor_heads is None else check_int("n_actor_heads", n_actor_heads, 1, "or None: n_heads")
+        n_critic_heads = None if n_critic_heads is None else check_int("n_critic_heads", n_critic_heads, 1, "or None: n_heads")
+        if confidence is not None:
+            check_strategy(confidence)
         given = dict(n_actor_heads=n_actor_heads, n_critic_heads=n_critic_heads, confidence=confidence, mask_prob=mask_prob)
         settings: dict[str, Any] = dict(n_actor_heads=n_heads, n_critic_heads=n_heads, confidence="adaptive", mask_prob=0.5)
         if preset is not None:
@@ -301,25 +433,23 @@ class SOUP(OffPolicyAlgorithm):
         check_mask_args(max(n_actor, n_critic), settings["mask_prob"])
         settings["mask_prob"] = float(settings["mask_prob"])
         settings["preset"] = preset
+        settings["n_heads"] = n_heads
         return settings
 
     @staticmethod
-    def _check_arguments(**kwargs: Any) -> None:
-        _check_float("alpha", kwargs["alpha"], 0.0, 1.0, True, True, "fixed confidence of a head in its own candidate")
-        _check_float("decay", kwargs["decay"], 0.0, 1.0, True, False, "per-step decay of the decayed confidence")
-        _check_float("temperature", kwargs["temperature"], 0.0, math.inf, True, True, "softmax temperature of the selection")
-        _check_float("confidence_lr", kwargs["confidence_lr"], 0.0, math.inf, True, True, "confidence network learning rate")
-        _check_float("noise_std", kwargs["noise_std"], 0.0, math.inf, False, True, "initial exploration noise std")
-        _check_float("noise_decay", kwargs["noise_decay"], 0.0, 1.0, True, False, "noise std decay per env step")
-        _check_float("noise_std_min", kwargs["noise_std_min"], 0.0, math.inf, False, True, "lowest exploration noise std")
-        _check_float("tau", kwargs["tau"], 0.0, 1.0, True, False, "soft update coefficient")
-        _check_float("gamma", kwargs["gamma"], 0.0, 1.0, False, False, "discount factor")
-        _check_int("batch_size", kwargs["batch_size"])
-        for name in ("confidence_baseline", "check_finite"):
-            if not isinstance(kwargs[name], (bool, np.bool_)):
-                raise ValueError(f"{name} must be True or False, got {kwargs[name]!r}")
-        if kwargs["train_heads"] not in TRAIN_HEADS:
-            raise ValueError(f"train_heads must be one of {TRAIN_HEADS}, got {kwargs['train_heads']!r}")
+    def _check_arguments(**kwargs: Any) -> dict[str, Any]:
+        """
+        Check the given arguments (any subset of the constructor's, see ``_ARGUMENT_CHECKS``); each error names the
+        parameter and the accepted values.
+
+        :return: the values, numbers converted to Python ``int``/``float``/``bool``
+        """
+        checked = dict(kwargs)
+        for name, value in kwargs.items():
+            check = _ARGUMENT_CHECKS.get(name)
+            if check is not None:
+                checked[name] = check(name, value)
+        return checked
 
     @classmethod
     def preset_names(cls) -> list[str]:
@@ -341,15 +471,60 @@ class SOUP(OffPolicyAlgorithm):
         """
         return cls(policy, env, preset=name, **kwargs)
 
+    def _get_policy_from_name(self, policy_name: str) -> type[BasePolicy]:
+        if policy_name not in self.policy_aliases:
+            hint = ""
+            if policy_name == "CnnPolicy":
+                hint = " (for images: MlpPolicy with policy_kwargs=dict(features_extractor_class=NatureCNN))"
+            raise ValueError(
+                f"policy must be one of {sorted(self.policy_aliases)} or a sb3_soup.SOUPPolicy subclass, "
+                f"got {policy_name!r}{hint}"
+            )
+        return self.policy_aliases[policy_name]
+
+    def _check_policy_and_spaces(self) -> None:
+        """What SB3's checks let through but SOUP refuses: other policies, unknown policy_kwargs, MultiInputPolicy on Box."""
+        if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, SOUPPolicy)):
+            raise ValueError(
+                f"policy must be one of {sorted(self.policy_aliases)} or a sb3_soup.SOUPPolicy subclass, "
+                f"got {self.policy_class!r}"
+            )
+        accepted = inspect.signature(self.policy_class.__init__).parameters
+        if not any(parameter.kind == inspect.Parameter.VAR_KEYWORD for parameter in accepted.values()):
+            set_by_soup = {"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"}
+            names = sorted(set(accepted) - {"self", "observation_space", "action_space", "lr_schedule"} - set_by_soup)
+            unknown = sorted(set(self.policy_kwargs) - set(names) - set_by_soup)
+            if unknown:
+                raise ValueError(f"policy_kwargs has unknown keys {unknown}; {self.policy_class.__name__} accepts {names}")
+        if issubclass(self.policy_class, MultiInputPolicy) and not isinstance(self.observation_space, spaces.Dict):
+            raise ValueError(
+                f"policy must be 'MlpPolicy' for {self.observation_space} observations ('MultiInputPolicy' is for Dict)"
+            )
+
+    def _warn_about_images(self) -> None:
+        extractor = self.policy_kwargs.get("features_extractor_class", FlattenExtractor)
+        if is_image_space(self.observation_space, check_channels=False) and extractor is FlattenExtractor:
+            warnings.warn(
+                f"the observations are images {self.observation_space.shape}: MlpPolicy flattens their pixels (scaled to "
+                "[0, 1]) into the MLP, as SB3's DDPG does. For a CNN pass "
+                "policy_kwargs=dict(features_extractor_class=stable_baselines3.common.torch_layers.NatureCNN)",
+                UserWarning,
+                stacklevel=3,
+            )
+
     def _setup_model(self) -> None:
+        self._check_policy_and_spaces()
         if self.replay_buffer_class is None:
             self.replay_buffer_class = (
                 BootstrappedDictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else BootstrappedReplayBuffer
             )
-        elif not issubclass(self.replay_buffer_class, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer)):
+        elif not (
+            isinstance(self.replay_buffer_class, type)
+            and issubclass(self.replay_buffer_class, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer))
+        ):
             raise ValueError(
-                "replay_buffer_class must be a subclass of sb3_soup.BootstrappedReplayBuffer or BootstrappedDictReplayBuffer "
-                f"(SOUP needs the bootstrap masks), got {self.replay_buffer_class.__name__}"
+                "replay_buffer_class must be None or a subclass of sb3_soup.BootstrappedReplayBuffer or "
+                f"BootstrappedDictReplayBuffer (SOUP needs the bootstrap masks), got {self.replay_buffer_class!r}"
             )
         self.replay_buffer_kwargs.update(n_masks=max(self.n_actor_heads, self.n_critic_heads), mask_prob=self.mask_prob)
         super()._setup_model()
@@ -392,6 +567,8 @@ class SOUP(OffPolicyAlgorithm):
 
     def _record_selection(self, obs: PyTorchObs, selection: Selection) -> None:
         """Keep what the confidence strategy learns from, and the ensemble statistics to log."""
+        if self.check_finite:
+            self._check_selection(selection)
         self._selection_counts += np.bincount(selection.chosen.cpu().numpy(), minlength=self.n_actor_heads)
         self._n_selections += len(selection.chosen)
         if selection.q_matrix is None or selection.weights is None:
@@ -472,13 +649,63 @@ class SOUP(OffPolicyAlgorithm):
         for key, value in self._update_confidence().items():
             self.logger.record(f"train/{key}", value)
 
-    def _check_loss(self, name: str, value: float, pair: int | None) -> None:
-        if self.check_finite and not math.isfinite(value):
-            which = "every head pair" if pair is None else f"head pair {pair}"
-            raise FloatingPointError(
-                f"non-finite {name} ({value}) for {which} at update {self._n_updates}: the Q values or targets diverged. "
-                "Lower the learning rates, check the reward scale, or pass check_finite=False to train on anyway"
-            )
+    def _check_loss(self, name: str, value: float, where: int | th.Tensor | str) -> None:
+        """
+        The one place where training stops on a non-finite value (when ``check_finite``): costs a ``math.isfinite``
+        on a loss already fetched for logging; the head pairs are only worked out once a value is non-finite.
+
+        :param name: the loss ("critic_loss", "actor_loss", "confidence_loss")
+        :param value: its value
+        :param where: the head pair it trained (int), the per-pair losses it summed (tensor, all-heads training) or a
+            description (e.g. the confidence strategy)
+        """
+        if not self.check_finite or math.isfinite(value):
+            return
+        if isinstance(where, th.Tensor):
+            bad = th.nonzero(~th.isfinite(where.detach().reshape(len(where), -1)).all(dim=1)).flatten().tolist()
+            which = f"head pair(s) {bad} (all-heads training; actor head k with critic head k)"
+        elif isinstance(where, int):
+            actor_head, critic_head = self.policy.pair_heads(where)
+            which = f"head pair {where} (actor head {actor_head}, critic head {critic_head})"
+        else:
+            which = where
+        raise FloatingPointError(
+            f"non-finite {name} ({value}) for {which} at update {self._n_updates} (step {self.num_timesteps}): the Q values "
+            "or their targets diverged. This update was applied, so the model's parameters may be non-finite too: resume "
+            "from an earlier checkpoint with lower learning rates or a rescaled reward, or pass check_finite=False to "
+            "train on anyway"
+        )
+
+    def _check_selection(self, selection: Selection) -> None:
+        """
+        Stop at the first non-finite E-action, Q value or confidence weight met while acting (when ``check_finite``):
+        one fused check on tensors already computed, the heads are only worked out once something is non-finite.
+        """
+        finite = th.isfinite(selection.actions).all()
+        if selection.q_matrix is not None and selection.weights is not None:
+            finite = finite & th.isfinite(selection.q_matrix).all() & th.isfinite(selection.weights).all()
+        if bool(finite):
+            return
+        problems = []
+        if selection.q_matrix is not None:
+            bad = ~th.isfinite(selection.q_matrix)  # (B, Kc, Ka)
+            bad_candidates = bad.all(dim=1).any(dim=0)  # (Ka,): every critic head gave a non-finite Q to this candidate
+            bad_critics = (bad & ~bad_candidates.view(1, 1, -1)).any(dim=2).any(dim=0)  # (Kc,): the other non-finite Qs
+            if bool(bad_candidates.any()):
+                heads = th.nonzero(bad_candidates).flatten().tolist()
+                problems.append(f"every critic head gave a non-finite Q value to the candidate(s) of actor head(s) {heads}")
+            if bool(bad_critics.any()):
+                problems.append(f"critic head(s) {th.nonzero(bad_critics).flatten().tolist()} gave non-finite Q values")
+        if selection.weights is not None and not bool(th.isfinite(selection.weights).all()):
+            problems.append(f"the confidence strategy {type(self.policy.confidence).__name__} gave non-finite weights")
+        bad_envs = ~th.isfinite(selection.actions).all(dim=1)
+        if bool(bad_envs.any()):
+            heads = sorted(set(selection.chosen[bad_envs].tolist()))
+            problems.append(f"actor head(s) {heads} proposed non-finite actions")
+        raise FloatingPointError(
+            f"non-finite values while acting at step {self.num_timesteps}: {'; '.join(problems)}. Resume from an earlier "
+            "checkpoint (with lower learning rates or a rescaled reward), or pass check_finite=False to act on anyway"
+        )
 
     def _train_pair(self, data: Samples, pair: int) -> tuple[float, float] | None:
         """
@@ -534,14 +761,15 @@ class SOUP(OffPolicyAlgorithm):
 
         actions_pi = self.actor(data.observations, grad_scale=1 / n_actor)  # (Ka, B, A)
         q_pi = self.critic(data.observations, actions_pi)  # (P, B, 1)
-        actor_loss = -((masks * q_pi).sum(dim=1) / n_kept.view(-1, 1)).sum() * n_actor / n_pairs
+        actor_per_pair = -(masks * q_pi).sum(dim=1) / n_kept.view(-1, 1)  # (P, 1)
+        actor_loss = actor_per_pair.sum() * n_actor / n_pairs
         self._optimize(self.actor, actor_loss, None if bool(has_data.all()) else has_data[:n_actor])
 
         soft_update(self.actor, self.actor_target, self.tau)
         soft_update(self.critic, self.critic_target, self.tau)
         critic_value, actor_value = critic_loss.item(), actor_loss.item()
-        self._check_loss("critic_loss", critic_value, None)
-        self._check_loss("actor_loss", actor_value, None)
+        self._check_loss("critic_loss", critic_value, per_pair)
+        self._check_loss("actor_loss", actor_value, actor_per_pair)
         return critic_value, actor_value
 
     @staticmethod
@@ -566,9 +794,9 @@ class SOUP(OffPolicyAlgorithm):
         else:
             obs_batch = th.cat(observations)  # type: ignore[arg-type]
         rollout = ConfidenceRollout(obs_batch, th.cat(q_matrices), th.cat(chosen), th.cat(rewards))
-        logs = self.policy.confidence.update(rollout)
+        logs = check_update_logs(self.policy.confidence, self.policy.confidence.update(rollout))
         if "confidence_loss" in logs:
-            self._check_loss("confidence_loss", logs["confidence_loss"], None)
+            self._check_loss("confidence_loss", logs["confidence_loss"], f"the {type(self.policy.confidence).__name__}")
         return logs
 
     # ----- logging, saving --------------------------------------------------------------------------------------
@@ -603,6 +831,11 @@ class SOUP(OffPolicyAlgorithm):
     ) -> tuple[int, Any]:
         resets_env = reset_num_timesteps or self._last_obs is None
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        if self.check_finite and self._last_obs is not None and not _all_finite(self._last_obs):
+            raise ValueError(
+                f"non-finite observation (NaN or inf) returned by env.reset(): {self._last_obs!r}. "
+                "Fix the environment, wrap it in VecCheckNan to locate the cause, or pass check_finite=False"
+            )
         if resets_env or self._active_heads is None or len(self._active_heads) != self.n_envs:
             # new episodes: draw their head pairs; selections without their reward are dropped
             self._active_heads = np.random.randint(self.policy.n_pairs, size=self.n_envs)
@@ -628,6 +861,117 @@ class SOUP(OffPolicyAlgorithm):
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
         )
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """
+        Save all the attributes of the object and the model parameters in a zip-file, as SB3 does, plus the
+        sb3-soup version and save format, and the random generators' states (restored by :meth:`load`).
+
+        :param path: path to the file where the model should be saved
+        :param exclude: name of parameters that should be excluded in addition to the default ones
+        :param include: name of parameters that might be excluded but should be included anyway
+        """
+        self._rng_state = capture_rng_state(self.action_space)
+        try:
+            super().save(path, exclude, include)
+        finally:
+            del self._rng_state
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfSOUP],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfSOUP:
+        """
+        Load a model saved by :meth:`save` as it was saved (its head counts, preset, strategy and settings), after
+        checking that the file is a complete SOUP model in a save format this version reads (see
+        :mod:`sb3_soup.saving`). The random generators are put back in their state at save time (SB3 would reseed them
+        with the model's seed), so that ``learn(..., reset_num_timesteps=False)`` continues the same random streams.
+
+        :param path: path to the file (or a file-like) where to load the agent from
+        :param env: the new environment to run the loaded model on (None: prediction only)
+        :param device: Device on which the code should run
+        :param custom_objects: objects to use instead of the saved ones (see SB3's ``load``)
+        :param print_system_info: print the saved and the current system info
+        :param force_reset: reset the environment before training (False: continue from the saved last observation,
+            for an environment restored to the same state, see :mod:`sb3_soup.checkpoint`)
+        :param kwargs: settings to change when loading (e.g. ``learning_starts``); the ones that shape the networks or
+            the strategy (head counts, preset, confidence and its parameters) are fixed by the file
+        :return: the model
+        """
+        data = read_saved_data(path)
+        saved_format = check_saved_format(data, path)
+        fixed = sorted(set(kwargs) & set(_STRUCTURAL_ARGUMENTS))
+        if fixed:
+            raise ValueError(
+                f"{fixed} cannot be changed when loading: the saved model was built with "
+                + ", ".join(f"{key}={data.get(key)!r}" for key in fixed if not isinstance(data.get(key), dict))
+                + "; create a new SOUP to use other values"
+            )
+        kwargs = cls._check_arguments(**kwargs)
+        try:
+            model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        except ValueError as error:
+            if "wasn't a zip-file" not in str(error):
+                raise
+            raise ValueError(f"{path} is a corrupt model zip ({error.__cause__}): load an earlier checkpoint") from error
+        rng_state = model.__dict__.pop("_rng_state", None)
+        if rng_state is not None:
+            restore_rng_state(rng_state, model.action_space)
+        elif saved_format == 0:
+            warnings.warn(
+                f"{path} was saved by sb3-soup 0.1.0a0 before the save format was stored: loaded as saved, but without the "
+                "random generators' state (they are reseeded with the model's seed, as SB3 does)",
+                UserWarning,
+                stacklevel=2,
+            )
+        # From now on it is this version's model (and saved in this version's format)
+        model._sb3_soup_format = SAVE_FORMAT_VERSION
+        model._sb3_soup_version = __version__
+        return model
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """
+        Load a replay buffer saved by ``save_replay_buffer``, after checking that it fits this model (bootstrap masks for
+        each head pair, same number of envs). The model's buffer is only replaced when the file is complete and fits.
+
+        :param path: Path to the pickled replay buffer
+        :param truncate_last_traj: unused (SB3 uses it for ``HerReplayBuffer``, which SOUP does not support)
+        """
+        try:
+            buffer = load_from_pkl(path, self.verbose)
+        except OSError:
+            raise
+        except Exception as error:
+            raise ValueError(
+                f"could not read the replay buffer {path}: the file is truncated or corrupt (a process killed while writing "
+                f"it leaves such files): {type(error).__name__}: {error}"
+            ) from error
+        if not isinstance(buffer, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer)):
+            raise ValueError(
+                f"{path} holds a {type(buffer).__name__}, not a sb3_soup BootstrappedReplayBuffer or "
+                "BootstrappedDictReplayBuffer (SOUP needs the bootstrap masks)"
+            )
+        if buffer.n_masks != self.policy.n_pairs:
+            raise ValueError(
+                f"the replay buffer in {path} has bootstrap masks for {buffer.n_masks} head pairs, this model has "
+                f"{self.policy.n_pairs} (n_actor_heads={self.n_actor_heads}, n_critic_heads={self.n_critic_heads})"
+            )
+        if buffer.n_envs != self.n_envs:
+            raise ValueError(f"the replay buffer in {path} was filled by {buffer.n_envs} envs, this model has {self.n_envs}")
+        buffer.device = self.device
+        self.replay_buffer = buffer
 
     def _excluded_save_params(self) -> list[str]:
         # Exclude aliases
