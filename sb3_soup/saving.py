@@ -54,24 +54,29 @@ def read_saved_data(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str, A
     """
     file = open_path(path, "r", suffix="zip")
     start = file.tell()
+    truncated = (
+        f"{_name(path)} is a truncated or corrupt model zip ({{error}}): a process killed while saving leaves such files; "
+        "load an earlier checkpoint (sb3_soup.checkpoint.latest_checkpoint finds the newest complete one)"
+    )
     try:
-        head = file.read(4)
+        head = file.read(64)
         file.seek(start)
+        # SB3 writes the 'data' entry first: a zip that starts with it but does not list it was cut short (the
+        # zip reader then finds the directory of policy.pth, itself a zip, inside the remains)
+        starts_with_data = head[:4] == _ZIP_MAGIC and head[30 : 30 + int.from_bytes(head[26:28], "little")] == b"data"
         try:
             with zipfile.ZipFile(file) as archive:
                 if "data" not in archive.namelist():
+                    if starts_with_data:
+                        raise ValueError(truncated.format(error="its directory has no 'data' entry"))
                     raise ValueError(
                         f"{_name(path)} is a zip archive but not a saved model: it has no 'data' entry "
                         "(SB3's model.save writes data, policy.pth and the optimizers' .pth files)"
                     )
                 raw = archive.read("data").decode()
         except zipfile.BadZipFile as error:
-            if head == _ZIP_MAGIC:
-                raise ValueError(
-                    f"{_name(path)} is a truncated or corrupt model zip ({error}): a process killed while saving leaves "
-                    "such files; load an earlier checkpoint (sb3_soup.checkpoint.latest_checkpoint finds the newest "
-                    "complete one)"
-                ) from error
+            if head[:4] == _ZIP_MAGIC:
+                raise ValueError(truncated.format(error=error)) from error
             raise ValueError(
                 f"{_name(path)} is not a saved model: it is not a zip archive (model.save writes a .zip; replay buffers "
                 "are loaded with model.load_replay_buffer)"

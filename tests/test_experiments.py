@@ -515,8 +515,8 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     for run_dir in run_dirs:
         done = json.loads((run_dir / DONE_FILE).read_text())
         assert done["timesteps"] == 500
-        # episodes end at 200 (first session), then 250 + 200 = 450 after the resume (the episode in progress at the
-        # checkpoint is abandoned): two complete episodes, one header.
+        # episodes end at 200 (first session), then 400 after the resume (the episode in progress at the checkpoint
+        # goes on: the env's state is restored): two complete episodes, one header.
         assert logs.count_episodes(run_dir) == done["episodes"] == 2
         assert (run_dir / logs.MONITOR_FILE).read_text().count("r,l,t") == 1
         steps = logs.read_progress(run_dir)["time/total_timesteps"].tolist()

@@ -2,14 +2,18 @@
 Checkpoints of an off-policy SB3 model (SOUP, TD3, ...) that a run can resume from.
 
 A checkpoint is a folder ``checkpoints/step_{N}`` holding ``model.zip`` (``model.save``), ``replay_buffer.pkl``
-(``model.save_replay_buffer``) and ``state.json`` (``num_timesteps`` plus whatever the caller adds, e.g. how many
-Monitor episodes had been written). It is written to a temporary folder and renamed into place, so a crash while
-saving never leaves a half-written "latest" checkpoint. Resuming is ``resume(...)`` then
-``model.learn(remaining_steps(model, total), reset_num_timesteps=False)``.
+(``model.save_replay_buffer``), ``training_state.pkl`` (random generators and environment state) and ``state.json``
+(``num_timesteps`` plus whatever the caller adds, e.g. how many Monitor episodes had been written). The files are
+written and read by :func:`sb3_soup.checkpoint.save_resumable` and :func:`sb3_soup.checkpoint.load_resumable`, the
+mechanism behind :class:`sb3_soup.checkpoint.ResumableCheckpointCallback`; the folder is written under a temporary
+name and renamed into place, so a crash while saving never leaves a half-written "latest" checkpoint. Resuming is
+``resume(...)`` then ``model.learn(remaining_steps(model, total), reset_num_timesteps=False)``.
 
-What is not restored: the environment's state mid-episode (the episode in progress when the checkpoint was taken is
-abandoned and a fresh one starts) and the exact random streams, so a resumed run is a faithful continuation, not
-bit-identical to an uninterrupted one.
+Saved between two rollouts (the runner saves from ``_on_rollout_start`` and stops with
+:class:`sb3_soup.checkpoint.StopTraining`), a checkpoint resumes exactly: the episode in progress continues and the
+random streams go on, so the resumed run is the run that would have happened without the interruption (see
+:mod:`sb3_soup.checkpoint` for the limits: DummyVecEnv environments whose state pickles, CPU, same versions).
+Checkpoints written before training states existed resume as before: a new episode and a fresh random stream.
 """
 
 from __future__ import annotations
@@ -23,12 +27,23 @@ from pathlib import Path
 from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_soup.checkpoint import StopTraining, load_resumable, save_resumable
+
+__all__ = [
+    "Checkpoint",
+    "StopTraining",
+    "latest_checkpoint",
+    "remaining_steps",
+    "resume",
+    "save_checkpoint",
+]
 
 CHECKPOINT_DIR = "checkpoints"
 MODEL_FILE = "model.zip"
 BUFFER_FILE = "replay_buffer.pkl"
+TRAINING_STATE_FILE = "training_state.pkl"
 STATE_FILE = "state.json"
 _PREFIX = "step_"
 
@@ -57,13 +72,18 @@ class Checkpoint:
         """The pickled replay buffer (absent for on-policy models)."""
         return self.path / BUFFER_FILE
 
+    @property
+    def training_state_path(self) -> Path:
+        """Random generators and environment state (absent in checkpoints written before they were saved)."""
+        return self.path / TRAINING_STATE_FILE
+
 
 def save_checkpoint(
     model: BaseAlgorithm, run_dir: str | os.PathLike, state: dict[str, Any] | None = None, keep: int = 1
 ) -> Checkpoint:
     """
-    Save the model, its replay buffer and ``state`` as the run's newest checkpoint, then delete all but the
-    ``keep`` newest.
+    Save the model, its replay buffer, its training state and ``state`` as the run's newest checkpoint, then delete
+    all but the ``keep`` newest. Call it between two rollouts (see :func:`sb3_soup.checkpoint.save_training_state`).
 
     :param model: the model
     :param run_dir: the run's folder (checkpoints go to ``run_dir/checkpoints``)
@@ -77,9 +97,7 @@ def save_checkpoint(
     full_state = {**(state or {}), "num_timesteps": step}
     tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=root))
     try:
-        model.save(tmp / MODEL_FILE)
-        if isinstance(model, OffPolicyAlgorithm) and model.replay_buffer is not None:
-            model.save_replay_buffer(tmp / BUFFER_FILE)
+        save_resumable(model, tmp / MODEL_FILE, tmp / BUFFER_FILE, tmp / TRAINING_STATE_FILE)
         (tmp / STATE_FILE).write_text(json.dumps(full_state, indent=2, sort_keys=True))
         final = root / f"{_PREFIX}{step:012d}"
         if final.exists():
@@ -113,19 +131,36 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Checkpoint | None:
     return Checkpoint(dirs[-1], int(state["num_timesteps"]), state)
 
 
-def resume(checkpoint: Checkpoint, algo_class: type[BaseAlgorithm], env: VecEnv, **load_kwargs: Any) -> BaseAlgorithm:
+def resume(
+    checkpoint: Checkpoint,
+    algo_class: type[BaseAlgorithm],
+    env: VecEnv,
+    fallback_seed: int | None = None,
+    **load_kwargs: Any,
+) -> BaseAlgorithm:
     """
-    Load a checkpoint: ``algo_class.load(model.zip, env=env)`` and its replay buffer.
+    Load a checkpoint (:func:`sb3_soup.checkpoint.load_resumable`): the model, its replay buffer, the random
+    generators and the environment's state, which ``env`` takes.
 
     :param checkpoint: from :func:`latest_checkpoint`
     :param algo_class: the model's class (``SOUP``, ``TD3``, ...)
-    :param env: the environment to continue on
+    :param env: the environment to continue on, built as the saved one
+    :param fallback_seed: for a checkpoint without training state (written by an older version): reseed with it, so
+        that the continuation does not replay the run's first random numbers
     :param load_kwargs: passed to ``algo_class.load`` (e.g. ``device``, ``custom_objects``)
     :return: the model, ready for ``learn(remaining_steps(model, total), reset_num_timesteps=False)``
     """
-    model = algo_class.load(checkpoint.model_path, env=env, **load_kwargs)
-    if isinstance(model, OffPolicyAlgorithm) and checkpoint.buffer_path.is_file():
-        model.load_replay_buffer(checkpoint.buffer_path)
+    has_state = checkpoint.training_state_path.is_file()
+    model = load_resumable(
+        algo_class,
+        checkpoint.model_path,
+        env,
+        checkpoint.buffer_path if checkpoint.buffer_path.is_file() else None,
+        checkpoint.training_state_path if has_state else None,
+        **load_kwargs,
+    )
+    if not has_state and fallback_seed is not None:
+        model.set_random_seed(fallback_seed)
     return model
 
 

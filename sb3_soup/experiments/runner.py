@@ -135,19 +135,26 @@ def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any) -> Any
             super().__init__()
             self.last_report = 0.0
             self.stopped = False
+            self.last_checkpoint = start_step
 
         def _on_step(self) -> bool:
             now = time.monotonic()
             if now - self.last_report > 1.0:
                 self.last_report = now
                 report_status(run_dir, "running", self.num_timesteps, spec.timesteps)
-            if spec.checkpoint_freq > 0 and self.num_timesteps % spec.checkpoint_freq == 0:
-                checkpointing.save_checkpoint(self.model, run_dir, state())
             new_steps = self.num_timesteps - start_step
             if STOP_REQUESTED.is_set() or (spec.stop_after is not None and new_steps >= spec.stop_after):
-                self.stopped = True
-                return False
+                self.stopped = True  # leave at the end of this rollout, where a checkpoint resumes exactly
             return True
+
+        def _on_rollout_start(self) -> None:
+            # Between two rollouts: the model, its buffer and the env agree (see sb3_soup.checkpoint)
+            if self.stopped:
+                raise checkpointing.StopTraining
+            step = self.model.num_timesteps
+            if spec.checkpoint_freq > 0 and step // spec.checkpoint_freq > self.last_checkpoint // spec.checkpoint_freq:
+                checkpointing.save_checkpoint(self.model, run_dir, state())
+                self.last_checkpoint = step
 
     return RunCallback()
 
@@ -351,9 +358,11 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
     env = DummyVecEnv([lambda: logs.monitor_env(gym.make(spec.env_id), run_dir)])
     try:
         if checkpoint is not None:
-            model = checkpointing.resume(checkpoint, algo_class(spec.algo), env, device="cpu")
-            # A fresh random stream for the continuation (the old one cannot be restored exactly).
-            model.set_random_seed(spec.seed + checkpoint.step)
+            # The run goes on exactly where it stopped (random streams and env state restored); checkpoints from before
+            # training states were saved start a fresh random stream instead of replaying the first one
+            model = checkpointing.resume(
+                checkpoint, algo_class(spec.algo), env, fallback_seed=spec.seed + checkpoint.step, device="cpu"
+            )
             start_step = checkpoint.step
         else:
             model = build_model(spec, env)
@@ -363,7 +372,10 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
         callback = _make_callback(spec, run_dir, start_step, state)
         remaining = checkpointing.remaining_steps(model, spec.timesteps)
         if remaining > 0:
-            model.learn(remaining, callback=callback, log_interval=1, reset_num_timesteps=checkpoint is None)
+            try:
+                model.learn(remaining, callback=callback, log_interval=1, reset_num_timesteps=checkpoint is None)
+            except checkpointing.StopTraining:
+                pass  # stopped between two rollouts: checkpointed below
         step = int(model.num_timesteps)
         if step < spec.timesteps:
             checkpointing.save_checkpoint(model, run_dir, state())

@@ -1,0 +1,203 @@
+"""Loading: files that are not models, truncated or corrupt ones, other K or presets, other sb3-soup versions, buffers."""
+
+import json
+import pickle
+import random
+import re
+import warnings
+import zipfile
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import TD3
+from stable_baselines3.common.env_util import make_vec_env
+
+import sb3_soup.saving
+from sb3_soup import SOUP, __version__
+from sb3_soup.saving import SAVE_FORMAT_VERSION
+
+TINY = dict(net_arch=dict(pi_body=[8], pi_head=[8], qf_body=[8, 8], qf_head=[8]))
+SMALL = dict(learning_starts=20, batch_size=16, buffer_size=300, policy_kwargs=TINY)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """A SOUP model trained a little, saved with its replay buffer."""
+    folder = tmp_path_factory.mktemp("saved")
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, seed=0, **SMALL)
+    model.learn(40)
+    model.save(folder / "model.zip")
+    model.save_replay_buffer(folder / "buffer.pkl")
+    return folder
+
+
+def _rewrite(source, target, change=None, drop=(), truncate=None):
+    """Copy a model zip, changing its ``data`` JSON, dropping entries, or truncating the file."""
+    if truncate is not None:
+        target.write_bytes(source.read_bytes()[:truncate])
+        return target
+    with zipfile.ZipFile(source) as old, zipfile.ZipFile(target, "w") as new:
+        for name in old.namelist():
+            if name in drop:
+                continue
+            content = old.read(name)
+            if name == "data" and change is not None:
+                data = json.loads(content)
+                change(data)
+                content = json.dumps(data).encode()
+            new.writestr(name, content)
+    return target
+
+
+# ---------------------------------------------------------------- files that are not (complete) models
+
+
+def test_files_that_are_not_models(saved, tmp_path):
+    text = tmp_path / "notes.txt"
+    text.write_text("hello")
+    with pytest.raises(ValueError, match=re.escape(f"{text} is not a saved model: it is not a zip archive")):
+        SOUP.load(text)
+    with pytest.raises(ValueError, match=r"is not a saved model: it is not a zip archive .*load_replay_buffer"):
+        SOUP.load(saved / "buffer.pkl")
+    no_data = _rewrite(saved / "model.zip", tmp_path / "no_data.zip", drop=("data",))
+    with pytest.raises(ValueError, match=re.escape(f"{no_data} is a zip archive but not a saved model: it has no 'data'")):
+        SOUP.load(no_data)
+    with pytest.raises(FileNotFoundError):
+        SOUP.load(tmp_path / "missing.zip")
+
+    td3 = TD3("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), buffer_size=100)
+    td3.save(tmp_path / "td3.zip")
+    with pytest.raises(ValueError, match=r"was not saved by SOUP \(its policy class comes from stable_baselines3\.td3"):
+        SOUP.load(tmp_path / "td3.zip")
+
+
+def test_truncated_and_corrupt_zips(saved, tmp_path):
+    size = (saved / "model.zip").stat().st_size
+    for cut in (size // 2, size - 10):
+        truncated = _rewrite(saved / "model.zip", tmp_path / f"cut_{cut}.zip", truncate=cut)
+        with pytest.raises(ValueError, match=r"is a truncated or corrupt model zip .* load an earlier checkpoint"):
+            SOUP.load(truncated)
+    # a flipped byte inside a parameter file: the zip's CRC check catches it
+    corrupt = tmp_path / "corrupt.zip"
+    content = bytearray((saved / "model.zip").read_bytes())
+    with zipfile.ZipFile(saved / "model.zip") as archive:
+        info = archive.getinfo("policy.pth")
+    offset = info.header_offset + 30 + len(info.filename) + len(info.extra) + info.compress_size // 2
+    content[offset] ^= 0xFF
+    corrupt.write_bytes(bytes(content))
+    with pytest.raises(ValueError, match=r"corrupt\.zip is a corrupt model zip .*Bad CRC-32"):
+        SOUP.load(corrupt)
+
+
+# ---------------------------------------------------------------- versions
+
+
+def test_the_version_and_save_format_are_stored(saved):
+    with zipfile.ZipFile(saved / "model.zip") as archive:
+        data = json.loads(archive.read("data"))
+    assert data["_sb3_soup_format"] == SAVE_FORMAT_VERSION and data["_sb3_soup_version"] == __version__
+    assert "_rng_state" in data
+
+
+def test_newer_and_older_save_formats_are_refused(saved, tmp_path, monkeypatch):
+    def newer(data):
+        data.update(_sb3_soup_format=SAVE_FORMAT_VERSION + 1, _sb3_soup_version="9.0.0")
+
+    future = _rewrite(saved / "model.zip", tmp_path / "future.zip", newer)
+    with pytest.raises(ValueError, match=r"saved by sb3-soup 9\.0\.0 in save format 2; this sb3-soup .* upgrade sb3-soup"):
+        SOUP.load(future)
+
+    def before_formats(data):
+        for key in ("_sb3_soup_format", "_sb3_soup_version", "_rng_state"):
+            del data[key]
+
+    old = _rewrite(saved / "model.zip", tmp_path / "old.zip", before_formats)
+    # today format 0 (0.1.0a0 before formats were stored) is read, with a warning about the random generators...
+    with pytest.warns(UserWarning, match="saved by sb3-soup 0.1.0a0 before the save format was stored"):
+        loaded = SOUP.load(old)
+    assert loaded.n_heads == 3 and loaded._sb3_soup_format == SAVE_FORMAT_VERSION
+    # ... and the day a version stops reading it, the message says which version to use
+    monkeypatch.setattr(sb3_soup.saving, "MIN_READABLE_FORMAT", 1)
+    with pytest.raises(ValueError, match=r"saved by sb3-soup 0\.1\.0a0 in save format 0, which this sb3-soup .* no longer"):
+        SOUP.load(old)
+
+
+# ---------------------------------------------------------------- another K, another preset: loaded as saved
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(preset="ma_bddpg", n_heads=3, mask_prob=0.7),
+        dict(preset="dbddpg", n_heads=4, train_heads="all"),
+        dict(n_heads=2, confidence="fixed", alpha=0.8),
+    ],
+    ids=["ma_bddpg-3", "dbddpg-4", "fixed-2"],
+)
+def test_other_head_counts_and_presets_load_as_saved(tmp_path, kwargs):
+    model = SOUP("MlpPolicy", "Pendulum-v1", seed=1, **SMALL, **kwargs)
+    model.learn(30)
+    model.save(tmp_path / "model")
+    loaded = SOUP.load(tmp_path / "model", env=make_vec_env("Pendulum-v1"))  # the class defaults are 5 heads, adaptive
+    for name in ("n_heads", "n_actor_heads", "n_critic_heads", "preset_name", "confidence", "mask_prob", "train_heads"):
+        assert getattr(loaded, name) == getattr(model, name), name
+    assert type(loaded.policy.confidence) is type(model.policy.confidence)
+    assert loaded.replay_buffer.n_masks == model.replay_buffer.n_masks
+    obs = np.random.default_rng(0).normal(size=(8, 3)).astype(np.float32)
+    assert np.array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
+    loaded.learn(20, reset_num_timesteps=False)
+
+
+def test_load_refuses_to_change_the_structure_and_checks_other_settings(saved):
+    with pytest.raises(ValueError, match=r"\['confidence', 'n_heads'\] cannot be changed when loading: .*n_heads=3"):
+        SOUP.load(saved / "model.zip", n_heads=5, confidence="none")
+    with pytest.raises(ValueError, match=re.escape("train_heads must be one of ('active', 'all')")):
+        SOUP.load(saved / "model.zip", train_heads="every")
+    loaded = SOUP.load(saved / "model.zip", learning_starts=np.int64(5), train_heads="all")
+    assert loaded.learning_starts == 5 and type(loaded.learning_starts) is int and loaded.train_heads == "all"
+
+
+def test_load_restores_the_random_generators(saved, tmp_path):
+    model = SOUP.load(saved / "model.zip")
+    model.save(tmp_path / "again")
+    after_save = (np.random.random(3), th.rand(3), random.random(), model.action_space.sample())
+    np.random.seed(123)  # anything in between...
+    loaded = SOUP.load(tmp_path / "again")  # ...and SB3's load would reseed with the model's seed
+    assert np.array_equal(np.random.random(3), after_save[0])
+    assert th.equal(th.rand(3), after_save[1]) and random.random() == after_save[2]
+    assert np.array_equal(loaded.action_space.sample(), after_save[3])
+
+
+# ---------------------------------------------------------------- replay buffers
+
+
+def test_replay_buffers_that_do_not_fit_are_refused(saved, tmp_path):
+    model = SOUP.load(saved / "model.zip", env=gym.make("Pendulum-v1"))
+    original = model.replay_buffer
+    data = (saved / "buffer.pkl").read_bytes()
+    (tmp_path / "cut.pkl").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"could not read the replay buffer .*cut\.pkl: the file is truncated or corrupt"):
+        model.load_replay_buffer(tmp_path / "cut.pkl")
+    assert model.replay_buffer is original  # untouched
+
+    other_k = SOUP("MlpPolicy", "Pendulum-v1", n_heads=4, **SMALL)
+    other_k.save_replay_buffer(tmp_path / "k4.pkl")
+    with pytest.raises(ValueError, match=r"has bootstrap masks for 4 head pairs, this model has 3"):
+        model.load_replay_buffer(tmp_path / "k4.pkl")
+
+    two_envs = SOUP("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2), n_heads=3, **SMALL)
+    two_envs.save_replay_buffer(tmp_path / "envs2.pkl")
+    with pytest.raises(ValueError, match=r"was filled by 2 envs, this model has 1"):
+        model.load_replay_buffer(tmp_path / "envs2.pkl")
+
+    with open(tmp_path / "dict.pkl", "wb") as file:
+        pickle.dump({"not": "a buffer"}, file)
+    with pytest.raises(ValueError, match=r"holds a dict, not a sb3_soup BootstrappedReplayBuffer"):
+        model.load_replay_buffer(tmp_path / "dict.pkl")
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.load_replay_buffer(saved / "buffer.pkl")
+    assert model.replay_buffer.size() == 40 and model.replay_buffer.masks.shape == (300, 1, 3)
