@@ -6,16 +6,18 @@ Train SOUP on Hopper-v4 with the paper's settings, evaluating with EvalCallback 
 
 A 1M-step run takes hours on a laptop CPU (about 30 env-steps/s at batch 1024): use a bigger machine or
 ``--timesteps 50000`` for a first look. Every ``--eval-freq`` steps the E-actions are evaluated and the best model
-is saved; checkpoints (with the replay buffer) let an interrupted run continue with ``--resume``.
+is saved; checkpoints (replay buffer, random generators and environment state included) let an interrupted run,
+even one killed, continue with ``--resume`` exactly as if it had not stopped (see docs/reliability.md).
 """
 
 import argparse
 from pathlib import Path
 
-from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
+from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_soup import SOUP
+from sb3_soup.checkpoint import ResumableCheckpointCallback, latest_checkpoint, load_checkpoint
 
 # Section 5 of the paper: Adam lr 1e-4 (actor) / 3e-4 (critic), gamma 0.99, tau 1e-3, batch 1024, buffer 1e6.
 PAPER = dict(
@@ -39,17 +41,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--logdir", default="logs")
     parser.add_argument("--device", default="auto")
-    parser.add_argument("--resume", help="checkpoint zip to continue from (its replay buffer is loaded too)")
+    parser.add_argument("--resume", action="store_true", help="continue from the newest complete checkpoint in --logdir")
     args = parser.parse_args()
 
     logdir = Path(args.logdir)
     env = make_vec_env(args.env, n_envs=1, seed=args.seed)
     eval_env = make_vec_env(args.env, n_envs=1, seed=args.seed + 1000)
-    if args.resume:
-        model = SOUP.load(args.resume, env=env, device=args.device, tensorboard_log=str(logdir / "tensorboard"))
-        # CheckpointCallback names them rl_model_<N>_steps.zip and rl_model_replay_buffer_<N>_steps.pkl
-        name = Path(args.resume).name.replace("_steps.zip", "_steps.pkl").replace("rl_model_", "rl_model_replay_buffer_")
-        model.load_replay_buffer(Path(args.resume).with_name(name))
+    checkpoints = logdir / "checkpoints"
+    checkpoint = latest_checkpoint(checkpoints) if args.resume else None
+    if args.resume and checkpoint is None:
+        parser.error(f"no complete checkpoint in {checkpoints}")
+    if checkpoint is not None:
+        model = load_checkpoint(checkpoint, env, device=args.device, tensorboard_log=str(logdir / "tensorboard"))
+        print(f"Resuming from step {checkpoint.step} ({checkpoint.model})")
     else:
         model = SOUP(
             "MlpPolicy",
@@ -70,9 +74,10 @@ def main() -> None:
             best_model_save_path=str(logdir / "best"),
             log_path=str(logdir / "eval"),
         ),
-        CheckpointCallback(save_freq=50_000, save_path=str(logdir / "checkpoints"), save_replay_buffer=True),
+        ResumableCheckpointCallback(save_freq=50_000, save_path=str(checkpoints), keep_last=2),
     ]
-    model.learn(args.timesteps, callback=callbacks, progress_bar=True, reset_num_timesteps=not args.resume, tb_log_name="SOUP")
+    remaining = args.timesteps - model.num_timesteps
+    model.learn(remaining, callback=callbacks, progress_bar=True, reset_num_timesteps=checkpoint is None, tb_log_name="SOUP")
     model.save(logdir / "soup_hopper")
 
 

@@ -941,6 +941,31 @@ class SOUP(OffPolicyAlgorithm):
         model._sb3_soup_version = __version__
         return model
 
+    def set_parameters(
+        self,
+        load_path_or_dict: str | dict[str, Any],
+        exact_match: bool = True,
+        device: th.device | str = "auto",
+    ) -> None:
+        """
+        Load parameters from a saved model (or a dict) into this model's networks, which must have their shapes;
+        a model saved with other head counts or sizes is loaded with :meth:`load`, which builds it as saved.
+
+        :param load_path_or_dict: the saved model, or a dict of state dicts
+        :param exact_match: every parameter of this model must be set
+        :param device: Device on which the code should run
+        """
+        try:
+            super().set_parameters(load_path_or_dict, exact_match, device)
+        except RuntimeError as error:
+            mismatches = [line.strip() for line in str(error).splitlines() if "size mismatch" in line]
+            if not mismatches:
+                raise
+            raise ValueError(
+                f"the saved parameters do not fit this model's networks (other head counts or net_arch?): {mismatches[0]} "
+                f"({len(mismatches)} mismatches). SOUP.load builds a model as it was saved"
+            ) from error
+
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """
         Load a replay buffer saved by ``save_replay_buffer``, after checking that it fits this model (bootstrap masks for

@@ -213,6 +213,11 @@ class _UpdateReturnsNone(ConfidenceStrategy):
         self.seen = len(rollout.chosen)  # forgets to return the logs
 
 
+class _DivergingUpdate(_UpdateReturnsNone):
+    def update(self, rollout):
+        return {"confidence_loss": float("nan")}
+
+
 def test_custom_strategies_that_do_not_follow_the_interface():
     with pytest.raises(ValueError, match=re.escape("it has a weights method: subclass sb3_soup.ConfidenceStrategy")):
         SOUP("MlpPolicy", "Pendulum-v1", confidence=_Duck())
@@ -236,6 +241,10 @@ def test_custom_strategies_that_do_not_follow_the_interface():
 
     model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence=_UpdateReturnsNone(), **SMALL)
     with pytest.raises(ValueError, match=re.escape("_UpdateReturnsNone.update must return a dict of values to log")):
+        model.learn(50)
+
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence=_DivergingUpdate(), **SMALL)
+    with pytest.raises(FloatingPointError, match=r"non-finite confidence_loss \(nan\) for the _DivergingUpdate at update 1"):
         model.learn(50)
 
 

@@ -201,3 +201,13 @@ def test_replay_buffers_that_do_not_fit_are_refused(saved, tmp_path):
         warnings.simplefilter("error")
         model.load_replay_buffer(saved / "buffer.pkl")
     assert model.replay_buffer.size() == 40 and model.replay_buffer.masks.shape == (300, 1, 3)
+
+
+def test_set_parameters_from_a_model_with_other_heads_says_to_use_load(saved):
+    five_heads = SOUP("MlpPolicy", "Pendulum-v1", n_heads=5, **SMALL)
+    with pytest.raises(ValueError, match=r"do not fit this model's networks .*torch.Size\(\[3, 8, 8\]\).* SOUP.load builds"):
+        five_heads.set_parameters(str(saved / "model.zip"))
+    three_heads = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, **SMALL)
+    three_heads.set_parameters(str(saved / "model.zip"))  # same shapes: loads
+    saved_weight = SOUP.load(saved / "model.zip").actor.heads.layers[0].weight
+    assert th.equal(three_heads.actor.heads.layers[0].weight, saved_weight)
