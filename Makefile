@@ -14,7 +14,7 @@ install:
 
 install-tests:
 	$(PIP) install --quiet $(TORCH_CPU)
-	$(PIP) install --quiet -e ".[tests]"
+	$(PIP) install --quiet -e ".[tests,zoo]"
 
 ## Train SOUP on a small default (Pendulum-v1), print evaluation returns, save the model and a learning curve.
 demo: install

@@ -1,0 +1,71 @@
+"""
+SOUP's search space for the RL Zoo's optimiser (``python -m rl_zoo3.train --algo soup -optimize``), in the Zoo's
+style (``rl_zoo3/hyperparams_opt.py``): ``sample_soup_params`` draws the values, ``convert_soup_params`` turns the
+values optuna stores (``trial.params``) into SOUP's constructor arguments, so that ``--trial-id`` and ``load_trial``
+rebuild exactly what a trial trained.
+"""
+
+from typing import Any
+
+# Bodies and heads of actor (pi) and critic (qf); "paper" is SOUP's default (Section 5 of the paper).
+NET_ARCHS: dict[str, dict[str, list[int]]] = {
+    "small": dict(pi_body=[64], pi_head=[64], qf_body=[64, 64], qf_head=[64]),
+    "paper": dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128]),
+    "big": dict(pi_body=[400], pi_head=[300], qf_body=[400, 300], qf_head=[300]),
+}
+N_HEADS = (3, 5, 10)
+CONFIDENCES = ("none", "fixed", "decayed", "adaptive")
+
+
+def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """
+    Turn sampled values into SOUP's arguments: ``one_minus_gamma`` -> ``gamma``, ``batch_size_pow`` ->
+    ``batch_size``, ``net_arch`` name -> ``policy_kwargs``, ``train_freq`` -> also ``gradient_steps`` (one gradient
+    step per env-step, as in the Zoo's TD3 sampler).
+
+    :param sampled_params: the values of one trial (``trial.params``)
+    :return: keyword arguments for ``SOUP``
+    """
+    hyperparams = dict(sampled_params)
+    if "one_minus_gamma" in hyperparams:
+        hyperparams["gamma"] = 1 - hyperparams.pop("one_minus_gamma")
+    if "batch_size_pow" in hyperparams:
+        hyperparams["batch_size"] = 2 ** hyperparams.pop("batch_size_pow")
+    if "train_freq" in hyperparams:
+        hyperparams["gradient_steps"] = hyperparams["train_freq"]
+    if "net_arch" in hyperparams:
+        hyperparams["policy_kwargs"] = dict(net_arch=NET_ARCHS[hyperparams.pop("net_arch")])
+    return hyperparams
+
+
+def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """
+    Sample SOUP hyper-parameters: the DDPG ones (actor and critic learning rates, batch size, tau, gamma, train
+    frequency, network sizes) and the ensemble's (number of heads, bootstrap mask probability, confidence strategy
+    and the adaptive confidence network's learning rate, exploration noise).
+
+    :param trial: the optuna trial
+    :param n_actions: size of the action space (unused: SOUP's noise is scaled to [-1, 1] actions)
+    :param n_envs: number of environments (unused)
+    :param additional_args: the Zoo's extra arguments (HER settings; unused, SOUP's buffer is its own)
+    :return: keyword arguments for ``SOUP``
+    """
+    params: dict[str, Any] = {
+        "one_minus_gamma": trial.suggest_float("one_minus_gamma", 0.0001, 0.03, log=True),
+        # 2**6 = 64 to 2**10 = 1024 (the paper's batch)
+        "batch_size_pow": trial.suggest_int("batch_size_pow", 6, 10),
+        "learning_rate": trial.suggest_float("learning_rate", 1e-5, 2e-3, log=True),
+        "critic_learning_rate": trial.suggest_float("critic_learning_rate", 1e-5, 2e-3, log=True),
+        "tau": trial.suggest_float("tau", 0.001, 0.08, log=True),
+        "train_freq": trial.suggest_int("train_freq", 1, 10),
+        "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCHS)),
+        "n_heads": trial.suggest_categorical("n_heads", list(N_HEADS)),
+        "mask_prob": trial.suggest_float("mask_prob", 0.3, 1.0),
+        "noise_std": trial.suggest_float("noise_std", 0.05, 0.5),
+        "confidence": trial.suggest_categorical("confidence", list(CONFIDENCES)),
+    }
+    if params["confidence"] == "adaptive":
+        params["confidence_lr"] = trial.suggest_float("confidence_lr", 1e-5, 1e-3, log=True)
+    trial.set_user_attr("gamma", 1 - params["one_minus_gamma"])
+    trial.set_user_attr("batch_size", 2 ** params["batch_size_pow"])
+    return convert_soup_params(params)
