@@ -4,7 +4,7 @@ PIP = $(PYTHON) -m pip
 # The CPU build of torch: install it before anything that depends on torch, or pip pulls a multi-GB CUDA build.
 TORCH_CPU ?= torch==2.13.0
 PYTEST_WORKERS ?= 2
-LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/)
+LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/) _sb3_soup_zoo_hook.py setup.py
 
 .PHONY: install install-tests demo test test-slow test-all lint type check-codestyle format
 
@@ -41,4 +41,4 @@ format:
 	$(PYTHON) -m ruff check --fix $(LINT_PATHS)
 
 type:
-	$(PYTHON) -m mypy sb3_soup/
+	$(PYTHON) -m mypy sb3_soup/ _sb3_soup_zoo_hook.py

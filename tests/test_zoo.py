@@ -1,0 +1,323 @@
+"""
+RL Zoo integration: the registration (``sb3_soup.zoo``), the import hook shipped as ``sb3_soup_zoo.pth``, and the
+Zoo's own command lines (train, enjoy, plots, record_video, -optimize on a shared sqlite study) run as subprocesses
+with tiny budgets, from a folder outside the repository (so they rely on the installed hook).
+"""
+
+import importlib.metadata
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+import yaml
+
+import _sb3_soup_zoo_hook
+from sb3_soup import zoo
+
+REPO = Path(__file__).resolve().parent.parent
+ENV_ID = "Pendulum-v1"
+# A few hundred steps with updates from step 100: enough to build, train, save and reload SOUP.
+TINY = ["-n", "300", "--hyperparams", "learning_starts:100", "batch_size:32", "--seed", "0"]
+
+
+def run(args: list[str], cwd: Path, hook: bool = True, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run ``python ARGS`` in ``cwd`` with the hook enabled (the default of an installed sb3-soup) or disabled."""
+    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS="1", SDL_VIDEODRIVER="dummy")
+    env.pop(_sb3_soup_zoo_hook.ENV_VAR, None)
+    if not hook:
+        env[_sb3_soup_zoo_hook.ENV_VAR] = "0"
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def check(result: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
+    output = f"stdout:\n{result.stdout[-3000:]}\nstderr:\n{result.stderr[-3000:]}"
+    assert result.returncode == 0, f"exit code {result.returncode}\n{output}"
+    return result
+
+
+def saved_config(folder: Path) -> dict:
+    """The hyper-parameters the Zoo saved for the first run of ``folder``."""
+    path = folder / "soup" / f"{ENV_ID}_1" / ENV_ID / "config.yml"
+    return dict(yaml.load(path.read_text(), Loader=yaml.UnsafeLoader))
+
+
+def test_hook_watches_the_modules_the_registration_needs():
+    assert _sb3_soup_zoo_hook.HOOKED_MODULES == set(zoo.HOOKED_MODULES)
+
+
+@pytest.mark.parametrize(("value", "enabled"), [(None, True), ("1", True), ("0", False), ("false", False), ("OFF", False)])
+def test_hook_env_var(monkeypatch, value, enabled):
+    if value is None:
+        monkeypatch.delenv(_sb3_soup_zoo_hook.ENV_VAR, raising=False)
+    else:
+        monkeypatch.setenv(_sb3_soup_zoo_hook.ENV_VAR, value)
+    assert _sb3_soup_zoo_hook.enabled() is enabled
+
+
+def test_registration_is_idempotent():
+    from rl_zoo3.exp_manager import ExperimentManager
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+    from rl_zoo3.utils import ALGOS
+
+    from sb3_soup import SOUP
+    from sb3_soup.zoo_hyperparams import convert_soup_params, sample_soup_params
+
+    zoo.register()
+    init = ExperimentManager.__init__
+    algos = dict(ALGOS)
+    zoo.register()
+    zoo.register()
+    assert ALGOS["soup"] is SOUP and ALGOS == algos
+    assert HYPERPARAMS_SAMPLER["soup"] is sample_soup_params
+    assert HYPERPARAMS_CONVERTER["soup"] is convert_soup_params
+    # wrapped once: the wrapper wraps the Zoo's own __init__
+    assert ExperimentManager.__init__ is init
+    assert not hasattr(init.__wrapped__, "__wrapped__")
+
+
+def test_default_conf_file_only_for_soup_without_conf_file(tmp_path):
+    import argparse
+
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    zoo.register()
+    args = argparse.Namespace()
+    folder = str(tmp_path)
+    assert ExperimentManager(args, "soup", ENV_ID, folder).config == str(zoo.DEFAULT_CONF_FILE)
+    assert ExperimentManager(args, "soup", ENV_ID, folder, config="mine.yml").config == "mine.yml"
+    assert ExperimentManager(args, "td3", ENV_ID, folder).config.endswith(os.path.join("hyperparams", "td3.yml"))
+
+
+def test_registration_failure_is_a_warning(monkeypatch):
+    import rl_zoo3.utils
+
+    def broken(module):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(zoo, "on_import", broken)
+    with pytest.warns(RuntimeWarning, match=r"could not register SOUP.*rl_zoo3\.utils.*boom"):
+        _sb3_soup_zoo_hook._register(rl_zoo3.utils)
+
+
+def test_hyperparams_file_has_the_issues_envs():
+    entries = yaml.safe_load(zoo.DEFAULT_CONF_FILE.read_text())
+    for env in ("Hopper", "Walker2d", "HalfCheetah", "Ant", "InvertedPendulum"):
+        for version in ("v4", "v5"):
+            assert f"{env}-{version}" in entries
+    assert "Pendulum-v1" in entries
+    paper = entries["Hopper-v4"]
+    # Section 5 of the paper
+    assert (paper["learning_rate"], paper["critic_learning_rate"], paper["gamma"], paper["tau"]) == (1e-4, 3e-4, 0.99, 1e-3)
+    assert (paper["batch_size"], paper["buffer_size"], paper["n_heads"]) == (1024, 1_000_000, 10)
+    assert entries["Walker2d-v5"] == paper
+    for values in entries.values():
+        # left to SOUP's defaults, so that `--hyperparams preset:...` can set them
+        assert "confidence" not in values and "mask_prob" not in values
+
+
+def test_sampled_hyperparameters_build_soup():
+    import optuna
+
+    from sb3_soup import SOUP
+    from sb3_soup.zoo_hyperparams import convert_soup_params, sample_soup_params
+
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0), direction="maximize")
+    seen = set()
+    for _ in range(12):
+        trial = study.ask()
+        kwargs = sample_soup_params(trial, n_actions=1, n_envs=1, additional_args={})
+        # what --trial-id rebuilds from the stored values is what the trial trained
+        assert convert_soup_params(trial.params) == kwargs
+        assert 64 <= kwargs["batch_size"] <= 1024 and 0.97 <= kwargs["gamma"] < 1
+        assert kwargs["gradient_steps"] == kwargs["train_freq"]
+        assert ("confidence_lr" in kwargs) == (kwargs["confidence"] == "adaptive")
+        seen.add(kwargs["confidence"])
+        model = SOUP(env=ENV_ID, policy="MlpPolicy", buffer_size=1000, **kwargs)
+        assert model.policy is not None
+        study.tell(trial, 0.0)
+    assert len(seen) > 1
+
+
+def test_installed_distribution_ships_the_pth_file():
+    """Whatever the install (wheel or editable), pip's RECORD lists the .pth: `pip uninstall` removes it."""
+    files = {str(path) for path in importlib.metadata.files("sb3-soup") or []}
+    assert "sb3_soup_zoo.pth" in files
+    pth = importlib.metadata.distribution("sb3-soup").locate_file("sb3_soup_zoo.pth")
+    assert Path(pth).read_text().strip() == "import _sb3_soup_zoo_hook"
+
+
+def test_startup_installs_the_finder_and_imports_nothing_heavy(tmp_path):
+    code = (
+        "import sys; import _sb3_soup_zoo_hook as h; "
+        "print(h.ZooFinder in sys.meta_path, sorted(m for m in ('torch', 'rl_zoo3', 'sb3_soup', 'numpy') if m in sys.modules))"
+    )
+    assert check(run(["-c", code], tmp_path)).stdout.split() == ["True", "[]"]
+    assert check(run(["-c", code], tmp_path, hook=False)).stdout.split() == ["False", "[]"]
+
+
+def test_startup_cost_under_two_ms(tmp_path):
+    """-X importtime of the hook module at start-up (bytecode compiled, as after a wheel install)."""
+    origin = "importlib.util.find_spec('_sb3_soup_zoo_hook').origin"
+    check(run(["-c", f"import importlib.util, py_compile; py_compile.compile({origin})"], tmp_path))
+    costs = []
+    for _ in range(5):
+        stderr = check(run(["-X", "importtime", "-c", "pass"], tmp_path)).stderr
+        match = re.search(r"import time:\s+\d+ \|\s+(\d+) \|\s+_sb3_soup_zoo_hook\s*$", stderr, re.MULTILINE)
+        assert match is not None, stderr[-2000:]
+        costs.append(int(match.group(1)))
+    assert min(costs) < 2000, costs
+
+
+def test_hook_disabled_zoo_refuses_soup(tmp_path):
+    refused = run(["-m", "rl_zoo3.train", "--algo", "soup", "--env", ENV_ID, *TINY, "-f", str(tmp_path)], tmp_path, hook=False)
+    assert refused.returncode == 2
+    assert "invalid choice: 'soup'" in refused.stderr
+    assert not (tmp_path / "soup").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_hook_disabled_plain_entry_point_trains(tmp_path):
+    args = ["-m", "sb3_soup.train", "--algo", "soup", "--env", ENV_ID, *TINY, "--eval-freq", "-1", "-f", str(tmp_path)]
+    check(run(args, tmp_path, hook=False))
+    assert (tmp_path / "soup" / f"{ENV_ID}_1" / f"{ENV_ID}.zip").is_file()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """`python -m rl_zoo3.train --algo soup` without --conf-file, with two evaluations (for the plots)."""
+    folder = tmp_path_factory.mktemp("zoo_logs")
+    args = ["-m", "rl_zoo3.train", "--algo", "soup", "--env", ENV_ID, *TINY, "--eval-freq", "150", "--eval-episodes", "2"]
+    result = check(run([*args, "-f", str(folder)], folder))
+    assert f"Loading hyperparameters from: {zoo.DEFAULT_CONF_FILE}" in result.stdout
+    return folder
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_train_without_conf_file(trained):
+    run_dir = trained / "soup" / f"{ENV_ID}_1"
+    assert (run_dir / f"{ENV_ID}.zip").is_file()
+    assert (run_dir / "evaluations.npz").is_file()
+    config = saved_config(trained)
+    # soup.yml's Pendulum-v1 entry, with the command line's overrides
+    assert config["n_heads"] == 5 and config["gamma"] == 0.98 and config["batch_size"] == 32
+
+    from sb3_soup import SOUP
+
+    model = SOUP.load(run_dir / f"{ENV_ID}.zip")
+    assert model.num_timesteps == 300
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_enjoy_the_trained_agent(trained):
+    args = ["--algo", "soup", "--env", ENV_ID, "-f", str(trained), "--no-render", "-n", "250", "--deterministic"]
+    for module in ("rl_zoo3.enjoy", "sb3_soup.enjoy"):
+        result = check(run(["-m", module, *args], trained))
+        assert "Episode Reward:" in result.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_plots_of_the_training_folder(trained):
+    output = trained / "all_plots"
+    plot_args = ["-a", "soup", "-e", ENV_ID, "-f", str(trained)]
+    check(run(["-m", "rl_zoo3.plots.all_plots", *plot_args, "--no-display", "-o", str(output)], trained))
+    import pickle
+
+    with open(f"{output}.pkl", "rb") as file:
+        results = pickle.load(file)
+    assert ENV_ID in results
+    check(run(["-m", "rl_zoo3.plots.plot_train", *plot_args, "-w", "1"], trained))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_record_video(trained):
+    missing = [name for name in ("moviepy", "pygame") if importlib.util.find_spec(name) is None]
+    if missing:
+        pytest.skip(f"record_video needs {missing} (pip install 'sb3-soup[zoo]')")
+    videos = trained / "videos"
+    args = ["-m", "rl_zoo3.record_video", "--algo", "soup", "--env", ENV_ID, "-f", str(trained), "-n", "50", "-o", str(videos)]
+    check(run(args, trained))
+    assert list(videos.glob("*.mp4"))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_optimize_two_workers_share_one_sqlite_study(tmp_path):
+    import optuna
+
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    # Created once before the workers start: two processes creating the schema of a new sqlite file at once collide.
+    optuna.create_study(storage=storage, study_name="soup", direction="maximize")
+    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS="1")
+    env.pop(_sb3_soup_zoo_hook.ENV_VAR, None)
+    args = ["-m", "rl_zoo3.train", "--algo", "soup", "--env", ENV_ID, "-optimize", "--storage", storage]
+    args += ["--study-name", "soup", "--n-trials", "1", "--n-jobs", "1", "--n-startup-trials", "1", "--n-evaluations", "1"]
+    args += ["--eval-episodes", "1", "--no-optim-plots", "-n", "300", "--hyperparams", "learning_starts:100"]
+    workers = [
+        subprocess.Popen(
+            [sys.executable, *args, "-f", str(tmp_path / f"worker{i}"), "--seed", str(i)],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    outputs = [worker.communicate(timeout=600)[0] for worker in workers]
+    for worker, output in zip(workers, outputs):
+        assert worker.returncode == 0, output[-3000:]
+    trials = optuna.load_study(study_name="soup", storage=storage).trials
+    assert len(trials) == 2
+    assert all(trial.state in (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED) for trial in trials)
+
+    # --trial-id trains with a trial's values, converted back by the registered converter (the Zoo ignores
+    # --trial-id 0: it tests `if self.trial_id`)
+    trial = trials[1]
+    retrain = ["-m", "rl_zoo3.train", "--algo", "soup", "--env", ENV_ID, *TINY, "--eval-freq", "-1"]
+    retrain += ["-f", str(tmp_path / "best"), "--storage", storage, "--study-name", "soup", "--trial-id", "1"]
+    check(run(retrain, tmp_path))
+    config = saved_config(tmp_path / "best")
+    assert config["n_heads"] == trial.params["n_heads"]
+    assert config["confidence"] == trial.params["confidence"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_wheel_ships_hook_and_uninstall_removes_it(tmp_path):
+    """Build the wheel, install it (no deps) into a fresh venv over the system site, use it, uninstall it."""
+    wheels = tmp_path / "wheels"
+    check(run(["-m", "pip", "wheel", "--no-deps", str(REPO), "-w", str(wheels), "-q"], tmp_path))
+    (wheel,) = wheels.glob("sb3_soup-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+        record = next(archive.read(name).decode() for name in names if name.endswith(".dist-info/RECORD"))
+    for name in ("sb3_soup_zoo.pth", "_sb3_soup_zoo_hook.py", "sb3_soup/hyperparams/soup.yml", "sb3_soup/zoo.py"):
+        assert name in names
+        assert re.search(rf"^{re.escape(name)},sha256=", record, re.MULTILINE)
+
+    target = tmp_path / "venv"
+    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(target)
+    python = str(target / "bin" / "python")
+    pip = ["-m", "pip", "--python", python]
+    check(run([*pip, "install", "--no-deps", "-q", str(wheel)], tmp_path))
+    where = "import sb3_soup, _sb3_soup_zoo_hook as h, sys; print(sb3_soup.__file__); print(h.ZooFinder in sys.meta_path)"
+    out = check(subprocess.run([python, "-c", where], cwd=tmp_path, capture_output=True, text=True)).stdout.split()
+    assert out[0].startswith(str(target)) and out[1] == "True"
+    registered = "import rl_zoo3, sb3_soup; print(rl_zoo3.ALGOS['soup'].__module__)"
+    out = check(subprocess.run([python, "-c", registered], cwd=tmp_path, capture_output=True, text=True)).stdout
+    assert out.split()[-1] == "sb3_soup.soup"
+
+    check(run([*pip, "uninstall", "-y", "-q", "sb3-soup"], tmp_path))
+    assert not list(target.glob("lib/python*/site-packages/sb3_soup_zoo.pth"))
+    assert not list(target.glob("lib/python*/site-packages/_sb3_soup_zoo_hook.py"))
