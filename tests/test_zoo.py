@@ -292,10 +292,8 @@ def test_optimize_two_workers_share_one_sqlite_study(tmp_path):
     assert config["confidence"] == trial.params["confidence"]
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(900)
-def test_wheel_ships_hook_and_uninstall_removes_it(tmp_path):
-    """Build the wheel, install it (no deps) into a fresh venv over the system site, use it, uninstall it."""
+def wheel_with_hook(tmp_path: Path) -> Path:
+    """Build sb3-soup's wheel and check that it holds (and its RECORD lists) the hook, the .pth and soup.yml."""
     wheels = tmp_path / "wheels"
     check(run(["-m", "pip", "wheel", "--no-deps", str(REPO), "-w", str(wheels), "-q"], tmp_path))
     (wheel,) = wheels.glob("sb3_soup-*.whl")
@@ -305,19 +303,36 @@ def test_wheel_ships_hook_and_uninstall_removes_it(tmp_path):
     for name in ("sb3_soup_zoo.pth", "_sb3_soup_zoo_hook.py", "sb3_soup/hyperparams/soup.yml", "sb3_soup/zoo.py"):
         assert name in names
         assert re.search(rf"^{re.escape(name)},sha256=", record, re.MULTILINE)
+    return wheel
 
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("mode", ["wheel", "editable"])
+def test_install_ships_hook_and_uninstall_removes_it(tmp_path, mode):
+    """Install (no deps) into a fresh venv over the system site, check the hook registers SOUP, uninstall."""
     target = tmp_path / "venv"
     venv.EnvBuilder(system_site_packages=True, with_pip=False).create(target)
     python = str(target / "bin" / "python")
     pip = ["-m", "pip", "--python", python]
-    check(run([*pip, "install", "--no-deps", "-q", str(wheel)], tmp_path))
-    where = "import sb3_soup, _sb3_soup_zoo_hook as h, sys; print(sb3_soup.__file__); print(h.ZooFinder in sys.meta_path)"
-    out = check(subprocess.run([python, "-c", where], cwd=tmp_path, capture_output=True, text=True)).stdout.split()
-    assert out[0].startswith(str(target)) and out[1] == "True"
-    registered = "import rl_zoo3, sb3_soup; print(rl_zoo3.ALGOS['soup'].__module__)"
+    if mode == "wheel":
+        check(run([*pip, "install", "--no-deps", "-q", str(wheel_with_hook(tmp_path))], tmp_path))
+        home = target
+    else:
+        check(run([*pip, "install", "--no-deps", "-q", "-e", str(REPO)], tmp_path))
+        home = REPO
+    (site,) = target.glob("lib/python*/site-packages")
+    assert (site / "sb3_soup_zoo.pth").is_file()
+    where = "import sys, _sb3_soup_zoo_hook as h, sb3_soup; print(h.__file__, sb3_soup.__file__, h.ZooFinder in sys.meta_path)"
+    hook_file, package_file, installed = check(
+        subprocess.run([python, "-c", where], cwd=tmp_path, capture_output=True, text=True)
+    ).stdout.split()
+    assert hook_file.startswith(str(home)) and package_file.startswith(str(home)) and installed == "True"
+    # the hook alone registers SOUP: nothing imports sb3_soup here
+    registered = "import rl_zoo3; print(rl_zoo3.ALGOS['soup'].__module__)"
     out = check(subprocess.run([python, "-c", registered], cwd=tmp_path, capture_output=True, text=True)).stdout
     assert out.split()[-1] == "sb3_soup.soup"
 
     check(run([*pip, "uninstall", "-y", "-q", "sb3-soup"], tmp_path))
-    assert not list(target.glob("lib/python*/site-packages/sb3_soup_zoo.pth"))
-    assert not list(target.glob("lib/python*/site-packages/_sb3_soup_zoo_hook.py"))
+    assert not (site / "sb3_soup_zoo.pth").exists()
+    assert not (site / "_sb3_soup_zoo_hook.py").exists()
