@@ -121,6 +121,15 @@ def test_hyperparams_file_has_the_issues_envs():
         assert "confidence" not in values and "mask_prob" not in values
 
 
+def test_pendulum_entry_is_the_demos_settings():
+    """soup.yml's Pendulum-v1 is what `make demo` and the learning test train (checked against drift)."""
+    from sb3_soup.demo import PENDULUM_SETTINGS
+
+    entry = yaml.safe_load(zoo.DEFAULT_CONF_FILE.read_text())["Pendulum-v1"]
+    assert {key: entry[key] for key in PENDULUM_SETTINGS} == PENDULUM_SETTINGS
+    assert set(entry) - set(PENDULUM_SETTINGS) == {"n_timesteps", "policy", "n_heads"}
+
+
 def test_sampled_hyperparameters_build_soup():
     import optuna
 
