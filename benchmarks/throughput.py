@@ -1,0 +1,409 @@
+"""
+Throughput benchmark of SOUP against SB3's DDPG and TD3 (issue 5: K heads must not make SOUP K times slower).
+
+Every (configuration, repeat) runs in a fresh subprocess with one torch thread; the configurations are interleaved
+(repeat 1 of every configuration, then repeat 2, ...) so that a change of machine load hits them all alike; the table
+reports medians over the repeats and each row's ratio to DDPG's median measured in the same run.
+
+Measured per configuration (Hopper-v4, ``train_freq=1``, ``gradient_steps=1``):
+
+- ``steps_per_s``: env-steps per second while training (after ``learning_starts`` and a few warm-up updates),
+  over a time window;
+- ``predict_1_ms`` / ``predict_8_ms``: deterministic ``predict`` latency for one observation and for a batch of 8;
+- ``train_gflop``: analytic FLOP count of one gradient step (see :func:`train_flops`);
+- ``peak_rss_mb`` (``--memory`` rows): peak RSS of a process holding a 1e6-transition replay buffer whose arrays are
+  written (filled, as a full buffer would be) after a few training steps.
+
+Usage::
+
+    python benchmarks/throughput.py --out throughput.json            # full table (about 20 min on 2 shared cores)
+    python benchmarks/throughput.py --quick --out quick.json         # a few rows, short windows (a smoke test)
+    python benchmarks/throughput.py --device cuda --out gpu.json     # the same table on a GPU
+"""
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from typing import Any
+
+ENV_ID = "Hopper-v4"
+# Hopper-v4: 11-dimensional observations, 3-dimensional actions
+OBS_DIM, ACT_DIM = 11, 3
+DDPG_ARCH = [256, 256]
+# The paper's sizes (sb3_soup.policies.DEFAULT_NET_ARCH)
+SOUP_ARCH = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
+
+
+def _single_thread() -> None:
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = "1"
+
+
+def config_name(config: dict[str, Any]) -> str:
+    if config["algo"] != "soup":
+        return f"{config['algo']} b{config['batch_size']}"
+    return f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
+
+
+def make_configs(quick: bool, batch_sizes: list[int]) -> list[dict[str, Any]]:
+    """The table's rows: DDPG, TD3, then SOUP for K in (1, 5, 10), active/all heads, confidence none/adaptive."""
+    configs: list[dict[str, Any]] = []
+    for batch_size in batch_sizes:
+        baselines = ["ddpg"] if quick else ["ddpg", "td3"]
+        configs += [dict(algo=algo, batch_size=batch_size) for algo in baselines]
+        heads = (10,) if quick else (1, 5, 10)
+        for n_heads in heads:
+            for train_heads in ("active", "all"):
+                for confidence in ("none", "adaptive"):
+                    if quick and (train_heads, confidence) == ("all", "none"):
+                        continue
+                    configs.append(
+                        dict(
+                            algo="soup",
+                            batch_size=batch_size,
+                            n_heads=n_heads,
+                            train_heads=train_heads,
+                            confidence=confidence,
+                        )
+                    )
+    return configs
+
+
+# ----- FLOP count -------------------------------------------------------------------------------------------------
+
+
+def _mlp_macs(sizes: list[int]) -> int:
+    """Multiply-accumulates of one sample through linear layers of these sizes."""
+    return sum(sizes[i] * sizes[i + 1] for i in range(len(sizes) - 1))
+
+
+def train_flops(config: dict[str, Any]) -> float:
+    """
+    FLOPs of one gradient step (critic and actor updates, targets), counted from the layer sizes: a forward pass is
+    2 FLOPs per multiply-accumulate and per sample; a pass that needs the weights' gradients costs 3 forward passes,
+    one that only propagates the gradient to its input (the critic under the actor loss in SOUP, which calls
+    ``backward(inputs=actor parameters)``) 2. SB3's DDPG/TD3 backpropagate the actor loss into the critic's weights
+    too (3). Optimizer and soft updates (proportional to the parameter count, not the batch) are left out.
+    """
+    batch = config["batch_size"]
+    if config["algo"] in ("ddpg", "td3"):
+        actor = _mlp_macs([OBS_DIM, *DDPG_ARCH, ACT_DIM])
+        critic = _mlp_macs([OBS_DIM + ACT_DIM, *DDPG_ARCH, 1])
+        n_critics = 1 if config["algo"] == "ddpg" else 2
+        # target: actor + critics forward; critic loss: critics forward+backward
+        macs = actor + n_critics * critic + 3 * n_critics * critic
+        if config["algo"] == "ddpg":
+            macs += 3 * actor + 3 * critic  # actor loss every step
+        else:
+            macs += (3 * actor + 3 * critic) / 2  # policy_delay=2: actor loss every other step (through Q1)
+        return 2.0 * batch * macs
+    k = config["n_heads"]
+    a_body = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]])
+    a_head = _mlp_macs([SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM])
+    h1, h2 = SOUP_ARCH["qf_body"][:2]
+    c_obs = OBS_DIM * h1 + h1 * h2 + _mlp_macs(SOUP_ARCH["qf_body"][1:])  # observation part of the body
+    c_act = ACT_DIM * h2  # action projection of the joint layer
+    c_head = _mlp_macs([SOUP_ARCH["qf_body"][-1], *SOUP_ARCH["qf_head"], 1])
+    n = k if config["train_heads"] == "all" else 1  # heads (pairs) trained by the step
+    target = a_body + n * a_head + c_obs + n * (c_act + c_head)
+    critic = 3 * (c_obs + c_act + n * c_head)  # one action per sample, n heads on the same features
+    actor = 3 * (a_body + n * a_head) + 2 * (c_obs + n * (c_act + c_head))  # critic: gradient to its input only
+    return 2.0 * batch * (target + critic + actor)
+
+
+# ----- the child process ------------------------------------------------------------------------------------------
+
+
+def _make_model(config: dict[str, Any], device: str, buffer_size: int, learning_starts: int, seed: int) -> Any:
+    from stable_baselines3 import DDPG, TD3
+
+    from sb3_soup import SOUP
+
+    common = dict(
+        buffer_size=buffer_size,
+        learning_starts=learning_starts,
+        batch_size=config["batch_size"],
+        train_freq=1,
+        gradient_steps=1,
+        seed=seed,
+        device=device,
+        verbose=0,
+    )
+    if config["algo"] in ("ddpg", "td3"):
+        algo = DDPG if config["algo"] == "ddpg" else TD3
+        return algo("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=list(DDPG_ARCH)), **common)
+    return SOUP(
+        "MlpPolicy",
+        ENV_ID,
+        n_heads=config["n_heads"],
+        train_heads=config["train_heads"],
+        confidence=config["confidence"],
+        policy_kwargs=dict(net_arch=SOUP_ARCH),
+        **common,
+    )
+
+
+def _predict_latency_ms(model: Any, n_obs: int, duration: float) -> float:
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(OBS_DIM,) if n_obs == 1 else (n_obs, OBS_DIM)).astype(np.float32)
+    for _ in range(20):
+        model.predict(obs, deterministic=True)
+    times = []
+    deadline = time.perf_counter() + duration
+    while time.perf_counter() < deadline or len(times) < 50:
+        start = time.perf_counter()
+        model.predict(obs, deterministic=True)
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)
+
+
+def measure_speed(config: dict[str, Any], device: str, window: float, learning_starts: int, seed: int) -> dict[str, Any]:
+    """Train past ``learning_starts`` plus warm-up updates, then count env-steps over ``window`` seconds."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    model = _make_model(config, device, buffer_size=100_000, learning_starts=learning_starts, seed=seed)
+    warmup = 20
+    model.learn(total_timesteps=learning_starts + warmup)
+
+    class Window(BaseCallback):
+        """Time stamps of the env-steps; stops the run once the window is over (one update between two stamps)."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.stamps: list[float] = []
+
+        def _on_step(self) -> bool:
+            self.stamps.append(time.perf_counter())
+            return self.stamps[-1] - self.stamps[0] < window
+
+    callback = Window()
+    model.learn(total_timesteps=10**9, callback=callback, reset_num_timesteps=False)
+    stamps = callback.stamps
+    steps_per_s = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+    return dict(
+        steps_per_s=steps_per_s,
+        n_steps=len(stamps) - 1,
+        predict_1_ms=_predict_latency_ms(model, 1, duration=min(1.0, window / 4)),
+        predict_8_ms=_predict_latency_ms(model, 8, duration=min(1.0, window / 4)),
+    )
+
+
+def measure_memory(config: dict[str, Any], device: str, buffer_size: int, seed: int) -> dict[str, Any]:
+    """Peak RSS with a ``buffer_size`` replay buffer whose arrays are written (as when full), after a few updates."""
+    import resource
+
+    import numpy as np
+
+    model = _make_model(config, device, buffer_size=buffer_size, learning_starts=100, seed=seed)
+    model.learn(total_timesteps=120)
+    buffer = model.replay_buffer
+    arrays = {name: value for name, value in vars(buffer).items() if isinstance(value, np.ndarray)}
+    for value in arrays.values():
+        value.fill(0)  # np.zeros allocates lazily: touch every page, as a full buffer does
+    nbytes = {name: int(value.nbytes) for name, value in arrays.items()}
+    masks = arrays.get("masks")
+    return dict(
+        peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,  # kB on Linux
+        buffer_mb=sum(nbytes.values()) / 2**20,
+        mask_mb=nbytes.get("masks", 0) / 2**20,
+        mask_dtype=None if masks is None else str(masks.dtype),
+    )
+
+
+def child(args: argparse.Namespace) -> None:
+    import torch as th
+
+    th.set_num_threads(1)
+    config = json.loads(args.child)
+    if args.memory_buffer:
+        result = measure_memory(config, args.device, args.memory_buffer, args.seed)
+    else:
+        result = measure_speed(config, args.device, args.window, args.learning_starts, args.seed)
+    print("RESULT " + json.dumps(result), flush=True)
+
+
+# ----- the parent: interleaved subprocesses, medians, table -------------------------------------------------------
+
+
+def run_child(config: dict[str, Any], args: argparse.Namespace, seed: int, memory_buffer: int = 0) -> dict[str, Any]:
+    command = [
+        sys.executable,
+        os.path.abspath(__file__),
+        "--child",
+        json.dumps(config),
+        "--device",
+        args.device,
+        "--window",
+        str(args.window),
+        "--learning-starts",
+        str(args.learning_starts),
+        "--seed",
+        str(seed),
+        "--memory-buffer",
+        str(memory_buffer),
+    ]
+    env = dict(os.environ)
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if done.returncode != 0 or not lines:
+        raise RuntimeError(f"{config_name(config)} failed (exit {done.returncode}):\n{done.stderr[-3000:]}")
+    return json.loads(lines[-1][len("RESULT ") :])
+
+
+def _median(runs: list[dict[str, Any]], key: str) -> float:
+    return float(statistics.median(run[key] for run in runs))
+
+
+def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dict[str, list]) -> list[dict[str, Any]]:
+    rows = []
+    for config in configs:
+        name = config_name(config)
+        runs = speed[name]
+        row: dict[str, Any] = dict(name=name, config=config, repeats=runs)
+        for key in ("steps_per_s", "predict_1_ms", "predict_8_ms"):
+            row[key] = _median(runs, key)
+        row["train_gflop"] = train_flops(config) / 1e9
+        rows.append(row)
+    for row in rows:
+        batch_size = row["config"]["batch_size"]
+        ddpg = next(r for r in rows if r["config"]["algo"] == "ddpg" and r["config"]["batch_size"] == batch_size)
+        row["speed_ratio"] = row["steps_per_s"] / ddpg["steps_per_s"]
+        row["predict_1_ratio"] = row["predict_1_ms"] / ddpg["predict_1_ms"]
+        row["predict_8_ratio"] = row["predict_8_ms"] / ddpg["predict_8_ms"]
+        row["flop_ratio"] = row["train_gflop"] / ddpg["train_gflop"]  # > 1: more arithmetic than DDPG per update
+    memory_rows = []
+    for name, runs in memory.items():
+        memory_rows.append(
+            dict(
+                name=name,
+                repeats=runs,
+                peak_rss_mb=_median(runs, "peak_rss_mb"),
+                buffer_mb=runs[0]["buffer_mb"],
+                mask_mb=runs[0]["mask_mb"],
+                mask_dtype=runs[0]["mask_dtype"],
+            )
+        )
+    if memory_rows:
+        ddpg_rss = next(r["peak_rss_mb"] for r in memory_rows if r["name"].startswith("ddpg"))
+        for row in memory_rows:
+            row["rss_ratio"] = row["peak_rss_mb"] / ddpg_rss
+    return rows + memory_rows
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    header = (
+        f"{'configuration':<32} {'steps/s':>8} {'x DDPG':>7} {'FLOP x':>7} {'1/FLOPx':>7} "
+        f"{'pred1 ms':>9} {'x DDPG':>7} {'pred8 ms':>9} {'x DDPG':>7}"
+    )
+    print(header)
+    print("-" * len(header))
+    for row in rows:
+        if "steps_per_s" not in row:
+            continue
+        print(
+            f"{row['name']:<32} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} {row['flop_ratio']:>7.2f} "
+            f"{1 / row['flop_ratio']:>7.2f} {row['predict_1_ms']:>9.3f} {row['predict_1_ratio']:>7.2f} "
+            f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f}"
+        )
+    memory_rows = [row for row in rows if "peak_rss_mb" in row]
+    if memory_rows:
+        print()
+        print(f"{'memory (1e6 buffer, filled)':<32} {'peak RSS MB':>12} {'x DDPG':>7} {'buffer MB':>10} {'masks MB':>9} dtype")
+        for row in memory_rows:
+            print(
+                f"{row['name']:<32} {row['peak_rss_mb']:>12.0f} {row['rss_ratio']:>7.2f} {row['buffer_mb']:>10.1f} "
+                f"{row['mask_mb']:>9.1f} {row['mask_dtype']}"
+            )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="a few rows, 1 repeat, short windows (smoke test)")
+    parser.add_argument("--repeats", type=int, default=None, help="fresh processes per configuration (default 3)")
+    parser.add_argument("--window", type=float, default=None, help="seconds of training timed per process (default 6)")
+    parser.add_argument("--learning-starts", type=int, default=None, help="random steps before training (default 1024)")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1024, 256])
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--memory-buffer", type=int, default=None, help="buffer size of the memory rows (0: none)")
+    parser.add_argument("--only", nargs="*", default=None, help="keep the configurations whose name contains one of these")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None, help="write the results as JSON here")
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    _single_thread()
+    if args.child is not None:
+        args.memory_buffer = args.memory_buffer or 0
+        child(args)
+        return
+
+    repeats = args.repeats or (1 if args.quick else 3)
+    args.window = args.window or (1.5 if args.quick else 6.0)
+    args.learning_starts = args.learning_starts or (256 if args.quick else 1024)
+    memory_buffer = args.memory_buffer if args.memory_buffer is not None else (20_000 if args.quick else 1_000_000)
+    batch_sizes = [args.batch_sizes[0]] if args.quick else args.batch_sizes
+    configs = make_configs(args.quick, batch_sizes)
+    if args.only:
+        configs = [c for c in configs if c["algo"] == "ddpg" or any(s in config_name(c) for s in args.only)]
+    memory_configs = []
+    if memory_buffer:
+        memory_configs = [
+            dict(algo="ddpg", batch_size=256),
+            dict(algo="soup", batch_size=256, n_heads=10, train_heads="active", confidence="adaptive"),
+        ]
+
+    speed: dict[str, list] = {config_name(c): [] for c in configs}
+    memory: dict[str, list] = {config_name(c): [] for c in memory_configs}
+    start = time.time()
+    for repeat in range(repeats):
+        # interleaved: every configuration once per repeat, in an order that rotates between repeats
+        order = configs[repeat % len(configs) :] + configs[: repeat % len(configs)]
+        for config in order:
+            result = run_child(config, args, seed=args.seed + repeat)
+            speed[config_name(config)].append(result)
+            print(
+                f"[{time.time() - start:6.0f}s] repeat {repeat + 1}/{repeats} {config_name(config):<32} "
+                f"{result['steps_per_s']:7.1f} steps/s",
+                flush=True,
+            )
+        for config in memory_configs:
+            result = run_child(config, args, seed=args.seed + repeat, memory_buffer=memory_buffer)
+            memory[config_name(config)].append(result)
+            print(f"[{time.time() - start:6.0f}s] repeat {repeat + 1}/{repeats} memory {config_name(config)}", flush=True)
+
+    rows = summarize(configs, speed, memory)
+    print()
+    print_table(rows)
+    if args.out:
+        import torch as th
+
+        meta = dict(
+            date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            machine=platform.platform(),
+            processor=platform.processor() or platform.machine(),
+            cpu_count=os.cpu_count(),
+            load_average=os.getloadavg(),
+            python=platform.python_version(),
+            torch=th.__version__,
+            device=args.device,
+            env=ENV_ID,
+            repeats=repeats,
+            window_s=args.window,
+            learning_starts=args.learning_starts,
+            memory_buffer=memory_buffer,
+            wall_s=time.time() - start,
+        )
+        with open(args.out, "w") as file:
+            json.dump(dict(meta=meta, rows=rows), file, indent=1)
+        print(f"\nwritten to {args.out}")
+
+
+if __name__ == "__main__":
+    main()
