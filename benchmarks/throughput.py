@@ -47,7 +47,8 @@ def _single_thread() -> None:
 def config_name(config: dict[str, Any]) -> str:
     if config["algo"] != "soup":
         return f"{config['algo']} b{config['batch_size']}"
-    return f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
+    name = f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
+    return name + (" (before)" if config.get("before") else "")
 
 
 def make_configs(quick: bool, batch_sizes: list[int]) -> list[dict[str, Any]]:
@@ -251,6 +252,9 @@ def run_child(config: dict[str, Any], args: argparse.Namespace, seed: int, memor
     ]
     env = dict(os.environ)
     env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    if config.get("before"):
+        # an older sb3_soup (a checkout's root folder) shadows the installed one in this child
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [args.before, env.get("PYTHONPATH")]))
     done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
     lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
     if done.returncode != 0 or not lines:
@@ -334,6 +338,12 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--memory-buffer", type=int, default=None, help="buffer size of the memory rows (0: none)")
     parser.add_argument("--only", nargs="*", default=None, help="keep the configurations whose name contains one of these")
+    parser.add_argument(
+        "--before",
+        default=None,
+        help="root of another sb3_soup checkout (e.g. `git worktree add /tmp/before <commit>`): its SOUP rows are "
+        "measured in the same run, marked (before)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -352,6 +362,8 @@ def main() -> None:
     configs = make_configs(args.quick, batch_sizes)
     if args.only:
         configs = [c for c in configs if c["algo"] == "ddpg" or any(s in config_name(c) for s in args.only)]
+    if args.before:
+        configs += [dict(config, before=True) for config in configs if config["algo"] == "soup"]
     memory_configs = []
     if memory_buffer:
         memory_configs = [

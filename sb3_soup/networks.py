@@ -65,7 +65,11 @@ class VectorizedLinear(nn.Module):
             return th.addmm(self.bias[head], x, self.weight[head])  # (B, out)
         if x.dim() == 2:
             x = x.unsqueeze(0)  # (1, B, in), broadcast over the heads
-        return th.matmul(x, self.weight) + self.bias  # (K, B, out)
+        weight = self.weight
+        n_heads = max(x.shape[0], weight.shape[0])
+        # One fused batched matmul + bias. An input shared by the heads is expanded (a view, no copy): cheaper than
+        # th.matmul's broadcasting, which copies it, and than a separate bias addition on the (K, B, out) output
+        return th.baddbmm(self.bias, x.expand(n_heads, -1, -1), weight.expand(n_heads, -1, -1))  # (K, B, out)
 
     def extra_repr(self) -> str:
         return f"in_features={self.in_features}, out_features={self.out_features}, n_heads={self.n_heads}"
@@ -261,7 +265,12 @@ class EnsembleCritic(EnsembleModel):
         h1 = self.activation(self.obs_layer(features))  # (B, H1)
         w_obs, w_act = self.joint_layer.weight.split([h1.shape[-1], actions.shape[-1]], dim=1)
         z_obs = F.linear(h1, w_obs, self.joint_layer.bias)  # (B, H2)
-        z = z_obs + F.linear(actions, w_act)  # (B, H2) or (N, B, H2)
+        # the action projection is fused with the addition of the observation part (one op, one output tensor)
+        if actions.dim() == 2:
+            z = th.addmm(z_obs, actions, w_act.T)  # (B, H2)
+        else:
+            n_candidates = actions.shape[0]
+            z = th.baddbmm(z_obs.unsqueeze(0), actions, w_act.T.expand(n_candidates, -1, -1))  # (N, B, H2)
         return scale_grad(self.body(self.activation(z)), grad_scale)
 
     def forward(  # type: ignore[override]
