@@ -5,6 +5,7 @@ Shapes in comments: K heads, B batch, F features, A action dimension, P paired h
 """
 
 import math
+from typing import Any
 
 import torch as th
 from gymnasium import spaces
@@ -117,15 +118,38 @@ class EnsembleModel(BaseModel):
 
     body: nn.Module
     heads: HeadStack
+    # (all, body, head) parameter lists, worked out once: every gradient step and soft update needs them
+    _parameter_lists: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]] | None = None
+
+    def _split_parameters(self) -> tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]]:
+        lists = self._parameter_lists
+        if lists is None:
+            heads: list[th.Tensor] = list(self.heads.parameters())
+            head_ids = {id(p) for p in heads}
+            every: list[th.Tensor] = list(self.parameters())
+            lists = self._parameter_lists = (every, [p for p in every if id(p) not in head_ids], heads)
+        return lists
+
+    def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]
+        self._parameter_lists = None  # .to(), .float()... may replace the parameters
+        return super()._apply(fn, recurse)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name != "_parameter_lists":
+            self.__dict__["_parameter_lists"] = None  # a new submodule or parameter
+        super().__setattr__(name, value)
+
+    def all_parameters(self) -> list[th.Tensor]:
+        """Every parameter (as ``list(self.parameters())``, cached)."""
+        return self._split_parameters()[0]
 
     def head_parameters(self) -> list[th.Tensor]:
         """Parameters batched over heads, shape (K, ...)."""
-        return list(self.heads.parameters())
+        return self._split_parameters()[2]
 
     def body_parameters(self) -> list[th.Tensor]:
         """Parameters shared by all heads (features extractor and body)."""
-        head_ids = {id(p) for p in self.head_parameters()}
-        return [p for p in self.parameters() if id(p) not in head_ids]
+        return self._split_parameters()[1]
 
 
 class EnsembleActor(EnsembleModel):

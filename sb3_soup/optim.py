@@ -94,7 +94,7 @@ class EnsembleAdam(th.optim.Optimizer):
         exp_avg_sqs = [state["exp_avg_sq"][rows] for state in states]
         n_steps = [state["n_steps"][rows] for state in states]
         if group["weight_decay"] != 0:
-            grads = th._foreach_add(grads, values, alpha=group["weight_decay"])
+            grads = list(th._foreach_add(grads, values, alpha=group["weight_decay"]))
         th._foreach_add_(n_steps, 1)
         th._foreach_lerp_(exp_avgs, grads, 1 - beta1)
         th._foreach_mul_(exp_avg_sqs, 1 - (1 - beta2))

@@ -289,6 +289,8 @@ class SOUPPolicy(BasePolicy):
 
         :param mode: if true, set to training mode, else set to evaluation mode
         """
+        if self.training == mode and all(module.training == mode for module in (self.actor, self.critic, self.confidence)):
+            return  # already there (called before every gradient step: skip walking the module trees)
         self.actor.set_training_mode(mode)
         self.critic.set_training_mode(mode)
         self.confidence.train(mode)

@@ -777,7 +777,7 @@ class SOUP(OffPolicyAlgorithm):
         """Gradient step on ``model`` alone (the actor loss leaves no gradient in the critic); ``head``: see EnsembleAdam."""
         optimizer = model.optimizer
         optimizer.zero_grad()
-        loss.backward(inputs=list(model.parameters()))
+        loss.backward(inputs=model.all_parameters())
         if isinstance(optimizer, EnsembleAdam):
             optimizer.step(head=head)
         else:
