@@ -117,6 +117,26 @@ def train_flops(config: dict[str, Any]) -> float:
     return 2.0 * batch * (target + critic + actor)
 
 
+def predict_flops(config: dict[str, Any]) -> float:
+    """
+    FLOPs of a deterministic ``predict`` for one observation. DDPG: its actor. SOUP: every actor head proposes a
+    candidate, every critic head scores every candidate (K x K head evaluations, the E-Critic's matrix ``V``), plus the
+    confidence network (adaptive).
+    """
+    if config["algo"] in ("ddpg", "td3"):
+        return 2.0 * _mlp_macs([OBS_DIM, *DDPG_ARCH, ACT_DIM])
+    k = config["n_heads"]
+    actor = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]]) + k * _mlp_macs(
+        [SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM]
+    )
+    h1, h2 = SOUP_ARCH["qf_body"][:2]
+    critic = OBS_DIM * h1 + h1 * h2 + k * ACT_DIM * h2 + k * k * _mlp_macs([h2, *SOUP_ARCH["qf_head"], 1])
+    confidence = _mlp_macs([OBS_DIM, 256, 128, k]) if config["confidence"] == "adaptive" and k > 1 else 0
+    if k == 1:
+        critic = 0  # one candidate: no scoring
+    return 2.0 * (actor + critic + confidence)
+
+
 # ----- the child process ------------------------------------------------------------------------------------------
 
 
@@ -275,6 +295,7 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
         for key in ("steps_per_s", "predict_1_ms", "predict_8_ms"):
             row[key] = _median(runs, key)
         row["train_gflop"] = train_flops(config) / 1e9
+        row["predict_mflop"] = predict_flops(config) / 1e6
         rows.append(row)
     for row in rows:
         batch_size = row["config"]["batch_size"]
@@ -283,6 +304,7 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
         row["predict_1_ratio"] = row["predict_1_ms"] / ddpg["predict_1_ms"]
         row["predict_8_ratio"] = row["predict_8_ms"] / ddpg["predict_8_ms"]
         row["flop_ratio"] = row["train_gflop"] / ddpg["train_gflop"]  # > 1: more arithmetic than DDPG per update
+        row["predict_flop_ratio"] = row["predict_mflop"] / ddpg["predict_mflop"]
     memory_rows = []
     for name, runs in memory.items():
         memory_rows.append(
@@ -304,8 +326,8 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     header = (
-        f"{'configuration':<32} {'steps/s':>8} {'x DDPG':>7} {'FLOP x':>7} {'1/FLOPx':>7} "
-        f"{'pred1 ms':>9} {'x DDPG':>7} {'pred8 ms':>9} {'x DDPG':>7}"
+        f"{'configuration':<42} {'steps/s':>8} {'x DDPG':>7} {'FLOP x':>7} {'1/FLOPx':>7} "
+        f"{'pred1 ms':>9} {'x DDPG':>7} {'pred8 ms':>9} {'x DDPG':>7} {'pred FLOP x':>11}"
     )
     print(header)
     print("-" * len(header))
@@ -315,15 +337,15 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         print(
             f"{row['name']:<32} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} {row['flop_ratio']:>7.2f} "
             f"{1 / row['flop_ratio']:>7.2f} {row['predict_1_ms']:>9.3f} {row['predict_1_ratio']:>7.2f} "
-            f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f}"
+            f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f} {row['predict_flop_ratio']:>11.1f}"
         )
     memory_rows = [row for row in rows if "peak_rss_mb" in row]
     if memory_rows:
         print()
-        print(f"{'memory (1e6 buffer, filled)':<32} {'peak RSS MB':>12} {'x DDPG':>7} {'buffer MB':>10} {'masks MB':>9} dtype")
+        print(f"{'memory (1e6 buffer, filled)':<42} {'peak RSS MB':>12} {'x DDPG':>7} {'buffer MB':>10} {'masks MB':>9} dtype")
         for row in memory_rows:
             print(
-                f"{row['name']:<32} {row['peak_rss_mb']:>12.0f} {row['rss_ratio']:>7.2f} {row['buffer_mb']:>10.1f} "
+                f"{row['name']:<42} {row['peak_rss_mb']:>12.0f} {row['rss_ratio']:>7.2f} {row['buffer_mb']:>10.1f} "
                 f"{row['mask_mb']:>9.1f} {row['mask_dtype']}"
             )
 
@@ -332,7 +354,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="a few rows, 1 repeat, short windows (smoke test)")
     parser.add_argument("--repeats", type=int, default=None, help="fresh processes per configuration (default 3)")
-    parser.add_argument("--window", type=float, default=None, help="seconds of training timed per process (default 6)")
+    parser.add_argument("--window", type=float, default=None, help="seconds of training timed per process (default 5)")
     parser.add_argument("--learning-starts", type=int, default=None, help="random steps before training (default 1024)")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1024, 256])
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -343,6 +365,12 @@ def main() -> None:
         default=None,
         help="root of another sb3_soup checkout (e.g. `git worktree add /tmp/before <commit>`): its SOUP rows are "
         "measured in the same run, marked (before)",
+    )
+    parser.add_argument(
+        "--before-rows",
+        nargs="+",
+        default=["K=10 active adaptive", "K=10 all adaptive"],
+        help="the SOUP configurations measured with --before (name substrings)",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="write the results as JSON here")
@@ -355,7 +383,7 @@ def main() -> None:
         return
 
     repeats = args.repeats or (1 if args.quick else 3)
-    args.window = args.window or (1.5 if args.quick else 6.0)
+    args.window = args.window or (1.5 if args.quick else 5.0)
     args.learning_starts = args.learning_starts or (256 if args.quick else 1024)
     memory_buffer = args.memory_buffer if args.memory_buffer is not None else (20_000 if args.quick else 1_000_000)
     batch_sizes = [args.batch_sizes[0]] if args.quick else args.batch_sizes
@@ -363,7 +391,8 @@ def main() -> None:
     if args.only:
         configs = [c for c in configs if c["algo"] == "ddpg" or any(s in config_name(c) for s in args.only)]
     if args.before:
-        configs += [dict(config, before=True) for config in configs if config["algo"] == "soup"]
+        before = [c for c in configs if c["algo"] == "soup" and any(s in config_name(c) for s in args.before_rows)]
+        configs += [dict(config, before=True) for config in before]
     memory_configs = []
     if memory_buffer:
         memory_configs = [
@@ -381,7 +410,7 @@ def main() -> None:
             result = run_child(config, args, seed=args.seed + repeat)
             speed[config_name(config)].append(result)
             print(
-                f"[{time.time() - start:6.0f}s] repeat {repeat + 1}/{repeats} {config_name(config):<32} "
+                f"[{time.time() - start:6.0f}s] repeat {repeat + 1}/{repeats} {config_name(config):<42} "
                 f"{result['steps_per_s']:7.1f} steps/s",
                 flush=True,
             )

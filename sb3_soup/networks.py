@@ -293,8 +293,10 @@ class EnsembleCritic(EnsembleModel):
         if actions.dim() == 2:
             z = th.addmm(z_obs, actions, w_act.T)  # (B, H2)
         else:
-            n_candidates = actions.shape[0]
-            z = th.baddbmm(z_obs.unsqueeze(0), actions, w_act.T.expand(n_candidates, -1, -1))  # (N, B, H2)
+            # (A, H2) made contiguous (a tiny copy) so that the backward's gradient w.r.t. the actions, (N, B, H2) x
+            # (H2, A), reads it transposed: 4x faster than the strided slice of the joint weight
+            w_act_t = w_act.T.contiguous()  # (A, H2)
+            z = th.baddbmm(z_obs.unsqueeze(0), actions, w_act_t.expand(actions.shape[0], -1, -1))  # (N, B, H2)
         return scale_grad(self.body(self.activation(z)), grad_scale)
 
     def forward(  # type: ignore[override]
