@@ -1,0 +1,60 @@
+"""
+The throughput benchmark's plumbing (benchmarks/throughput.py): not timed, speed targets live in the benchmark itself.
+"""
+
+import importlib.util
+import json
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
+
+
+def load_benchmark():
+    spec = importlib.util.spec_from_file_location("throughput", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_flop_counts():
+    bench = load_benchmark()
+    ddpg = dict(algo="ddpg", batch_size=1024)
+    soup = dict(algo="soup", batch_size=1024, n_heads=10, train_heads="all", confidence="adaptive")
+    # DDPG [256, 256] on Hopper: about 0.76M multiply-adds per sample and update
+    assert bench.train_flops(ddpg) == pytest.approx(2 * 1024 * 762_000, rel=0.01)
+    # all heads at K=10: about 5x DDPG's arithmetic; the active pair about DDPG's
+    assert 4.5 < bench.train_flops(soup) / bench.train_flops(ddpg) < 5.5
+    active = dict(soup, train_heads="active")
+    assert 0.9 < bench.train_flops(active) / bench.train_flops(ddpg) < 1.1
+    # FLOPs scale with the batch
+    assert bench.train_flops(dict(ddpg, batch_size=256)) == pytest.approx(bench.train_flops(ddpg) / 4)
+    # predict: the E-Critic scores K x K (candidate, critic head) pairs
+    assert bench.predict_flops(soup) / bench.predict_flops(ddpg) > 40
+    names = [bench.config_name(c) for c in bench.make_configs(quick=False, batch_sizes=[1024, 256])]
+    assert len(names) == len(set(names)) == 2 * (2 + 3 * 2 * 2)
+
+
+@pytest.mark.slow
+def test_quick_mode_writes_the_table(tmp_path):
+    out = tmp_path / "quick.json"
+    command = [sys.executable, str(SCRIPT), "--quick", "--window", "0.5", "--learning-starts", "64"]
+    command += ["--memory-buffer", "5000", "--only", "K=10 active adaptive", "--out", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "x DDPG" in done.stdout
+    results = json.loads(out.read_text())
+    assert results["meta"]["env"] == "Hopper-v4" and results["meta"]["repeats"] == 1
+    speed_rows = [row for row in results["rows"] if "steps_per_s" in row]
+    assert {row["name"] for row in speed_rows} == {"ddpg b1024", "soup K=10 active adaptive b1024"}
+    for row in speed_rows:
+        for key in ("steps_per_s", "predict_1_ms", "predict_8_ms", "train_gflop", "speed_ratio", "flop_ratio"):
+            assert row[key] > 0, key
+    memory_rows = [row for row in results["rows"] if "peak_rss_mb" in row]
+    assert len(memory_rows) == 2
+    soup_memory = next(row for row in memory_rows if row["name"].startswith("soup"))
+    assert soup_memory["mask_dtype"] == "bool" and soup_memory["peak_rss_mb"] > 0

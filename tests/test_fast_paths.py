@@ -1,0 +1,173 @@
+"""
+The fused fast paths (issue 5) give the numbers of the straightforward computations they replace:
+batched ensemble layers, the critic's fused action projection, EnsembleAdam's foreach update, cached parameter lists.
+"""
+
+import copy
+
+import pytest
+import torch as th
+from torch import nn
+from torch.nn import functional as F
+
+from sb3_soup import SOUP
+from sb3_soup.networks import VectorizedLinear
+from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
+
+
+def reference_layer(layer: VectorizedLinear, x: th.Tensor) -> th.Tensor:
+    """One nn.Linear-style product per head, stacked."""
+    if x.dim() == 2:
+        x = x.unsqueeze(0).expand(layer.n_heads, -1, -1)
+    n = max(x.shape[0], layer.n_heads)
+    x = x.expand(n, -1, -1)
+    weight, bias = layer.weight.expand(n, -1, -1), layer.bias.expand(n, -1, -1)
+    return th.stack([x[k] @ weight[k] + bias[k] for k in range(n)])  # (K, B, out)
+
+
+@pytest.mark.parametrize("n_heads, x_shape", [(4, (6, 5)), (4, (4, 6, 5)), (4, (1, 6, 5)), (1, (3, 6, 5))])
+def test_vectorized_linear_matches_per_head_products(n_heads, x_shape):
+    th.manual_seed(0)
+    layer = VectorizedLinear(5, 7, n_heads)
+    x = th.randn(*x_shape, requires_grad=True)
+    out = layer(x)
+    x_ref = x.detach().clone().requires_grad_(True)
+    ref_layer = copy.deepcopy(layer)
+    ref = reference_layer(ref_layer, x_ref)
+    assert out.shape == ref.shape
+    th.testing.assert_close(out, ref)
+    # same gradients for the input (summed over the heads when shared), the weights and the biases
+    grad = th.randn_like(out)
+    out.backward(grad)
+    ref.backward(grad)
+    th.testing.assert_close(x.grad, x_ref.grad)
+    th.testing.assert_close(layer.weight.grad, ref_layer.weight.grad)
+    th.testing.assert_close(layer.bias.grad, ref_layer.bias.grad)
+
+
+def test_vectorized_linear_one_head():
+    th.manual_seed(0)
+    layer = VectorizedLinear(5, 7, 3)
+    x = th.randn(6, 5)
+    th.testing.assert_close(layer(x, head=2), x @ layer.weight[2] + layer.bias[2])
+    th.testing.assert_close(layer(x, head=2), layer(x)[2])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, buffer_size=100, learning_starts=10, seed=0)
+
+
+@pytest.mark.parametrize("actions_shape", [(8, 1), (3, 8, 1), (1, 8, 1)])
+def test_critic_fused_action_projection_matches_concatenation(model, actions_shape):
+    """``W [h1; a] + b`` computed on the concatenation, as nn.Linear would, for one or N actions per observation."""
+    critic = model.critic
+    th.manual_seed(1)
+    obs = th.randn(8, 3)
+    actions = th.rand(*actions_shape) * 2 - 1
+    h1 = critic.activation(critic.obs_layer(obs))  # (B, H1)
+    if actions.dim() == 2:
+        z = critic.joint_layer(th.cat([h1, actions], dim=-1))
+    else:
+        z = critic.joint_layer(th.cat([h1.expand(actions.shape[0], -1, -1), actions], dim=-1))
+    reference = critic.body(critic.activation(z))
+    th.testing.assert_close(critic.body_features(obs, actions), reference)
+    # and the gradient w.r.t. the actions (the actor loss), through the strided joint weight
+    actions_a = actions.clone().requires_grad_(True)
+    actions_b = actions.clone().requires_grad_(True)
+    critic.body_features(obs, actions_a).sum().backward()
+    h1 = critic.activation(critic.obs_layer(obs))
+    expanded = h1 if actions.dim() == 2 else h1.expand(actions.shape[0], -1, -1)
+    critic.body(critic.activation(critic.joint_layer(th.cat([expanded, actions_b], dim=-1)))).sum().backward()
+    th.testing.assert_close(actions_a.grad, actions_b.grad)
+    critic.zero_grad(set_to_none=True)
+
+
+def test_q_matrix_matches_head_by_head_evaluation(model):
+    policy = model.policy
+    th.manual_seed(2)
+    obs = th.randn(5, 3)
+    with th.no_grad():
+        candidates = policy.actor(obs)  # (Ka, B, A)
+        q_matrix = policy.critic.q_matrix(obs, candidates)  # (B, Kc, Ka)
+        for i in range(policy.n_critic_heads):
+            for k in range(policy.n_actor_heads):
+                q = policy.critic(obs, candidates[k], head=i)  # (B, 1)
+                th.testing.assert_close(q_matrix[:, i, k], q[:, 0])
+
+
+def adam_reference_step(optimizer: EnsembleAdam, head) -> None:
+    """The per-parameter path (no foreach), kept for row masks."""
+    with th.no_grad():
+        for group in optimizer.param_groups:
+            rows = head if (group["heads"] and isinstance(head, int)) else ...
+            for param in group["params"]:
+                if param.grad is not None:
+                    optimizer._adam_update(group, param, rows, None)
+
+
+@pytest.mark.parametrize("weight_decay", [0.0, 0.1])
+@pytest.mark.parametrize("head", [None, 0, 2])
+def test_ensemble_adam_foreach_update_is_the_per_parameter_update(weight_decay, head):
+    def make():
+        th.manual_seed(0)
+        body = [nn.Parameter(th.randn(5, 3)), nn.Parameter(th.randn(3))]
+        heads = [nn.Parameter(th.randn(4, 3, 2)), nn.Parameter(th.randn(4, 1, 2))]
+        return body, heads, EnsembleAdam(ensemble_param_groups(body, heads), lr=1e-2, weight_decay=weight_decay)
+
+    body_a, heads_a, fast = make()
+    body_b, heads_b, reference = make()
+    for step in range(5):
+        th.manual_seed(100 + step)
+        grads = [th.randn_like(p) for p in body_a + heads_a]
+        for params in (body_a + heads_a, body_b + heads_b):
+            for param, grad in zip(params, grads):
+                param.grad = grad.clone()
+        fast.step(head=head)
+        adam_reference_step(reference, head)
+    for a, b in zip(body_a + heads_a, body_b + heads_b):
+        assert th.equal(a, b)
+    for a, b in zip(body_a + heads_a, body_b + heads_b):
+        for key in ("exp_avg", "exp_avg_sq", "n_steps"):
+            assert th.equal(fast.state[a][key], reference.state[b][key])
+    if isinstance(head, int):
+        untouched = [k for k in range(4) if k != head]
+        _, initial, _ = make()
+        for param, start in zip(heads_a, initial):
+            assert th.equal(param[untouched], start[untouched])
+            assert not th.equal(param[head], start[head])
+
+
+def test_cached_parameter_lists_follow_the_model(model):
+    actor = copy.deepcopy(model.actor)
+    assert actor.all_parameters() == list(actor.parameters())
+    body, heads = actor.body_parameters(), actor.head_parameters()
+    assert {id(p) for p in body} | {id(p) for p in heads} == {id(p) for p in actor.parameters()}
+    assert not {id(p) for p in body} & {id(p) for p in heads}
+    # a new submodule invalidates the cache
+    actor.body = nn.Sequential(nn.Linear(3, 256), nn.LeakyReLU())
+    assert actor.all_parameters() == list(actor.parameters())
+    actor.double()
+    assert all(p.dtype == th.float64 for p in actor.all_parameters())
+    assert actor.all_parameters() == list(actor.parameters())
+
+
+def test_set_training_mode_still_switches(model):
+    policy = model.policy
+    policy.set_training_mode(False)
+    assert not policy.actor.training and not policy.critic.training
+    policy.set_training_mode(True)
+    assert policy.actor.training and policy.critic.training and policy.actor.body.training
+    policy.actor.eval()  # changed behind the policy's back: still switched back
+    policy.set_training_mode(True)
+    assert policy.actor.training
+    policy.set_training_mode(False)
+
+
+def test_fused_linear_is_functional_linear():
+    # the split of the joint layer used by the critic is nn.Linear on the concatenation
+    th.manual_seed(3)
+    layer = nn.Linear(6, 4)
+    h, a = th.randn(5, 4), th.randn(5, 2)
+    w_obs, w_act = layer.weight.split([4, 2], dim=1)
+    th.testing.assert_close(th.addmm(F.linear(h, w_obs, layer.bias), a, w_act.T), layer(th.cat([h, a], dim=1)))
