@@ -6,7 +6,7 @@ TORCH_CPU ?= torch==2.13.0
 PYTEST_WORKERS ?= 2
 LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/) _sb3_soup_zoo_hook.py setup.py
 
-.PHONY: install install-tests demo test test-slow test-all lint type check-codestyle format
+.PHONY: install install-tests demo test test-slow test-all bench lint type check-codestyle format
 
 install:
 	$(PIP) install --quiet $(TORCH_CPU)
@@ -29,6 +29,10 @@ test-slow: install-tests
 	$(PYTHON) -m pytest -m slow -n $(PYTEST_WORKERS) --durations=15
 
 test-all: test test-slow
+
+## Throughput of SOUP against SB3's DDPG/TD3 on Hopper-v4 (about 20 minutes on 2 cores; see docs/benchmarks.md).
+bench: install
+	$(PYTHON) benchmarks/throughput.py --out throughput.json
 
 lint:
 	$(PYTHON) -m ruff check $(LINT_PATHS)

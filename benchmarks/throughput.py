@@ -335,7 +335,7 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         if "steps_per_s" not in row:
             continue
         print(
-            f"{row['name']:<32} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} {row['flop_ratio']:>7.2f} "
+            f"{row['name']:<42} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} {row['flop_ratio']:>7.2f} "
             f"{1 / row['flop_ratio']:>7.2f} {row['predict_1_ms']:>9.3f} {row['predict_1_ratio']:>7.2f} "
             f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f} {row['predict_flop_ratio']:>11.1f}"
         )
