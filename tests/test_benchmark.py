@@ -39,8 +39,8 @@ def test_flop_counts():
     assert len(names) == len(set(names)) == 2 * (2 + 3 * 2 * 2)
 
 
-@pytest.mark.slow
 def test_quick_mode_writes_the_table(tmp_path):
+    # about 15 s: four short child processes (not timed: it checks the JSON, not the speed)
     out = tmp_path / "quick.json"
     command = [sys.executable, str(SCRIPT), "--quick", "--window", "0.5", "--learning-starts", "64"]
     command += ["--memory-buffer", "5000", "--only", "K=10 active adaptive", "--out", str(out)]
