@@ -135,8 +135,10 @@ class EnsembleModel(BaseModel):
         return super()._apply(fn, recurse)
 
     def __setattr__(self, name: str, value: Any) -> None:
-        if name != "_parameter_lists":
-            self.__dict__["_parameter_lists"] = None  # a new submodule or parameter
+        if isinstance(value, (nn.Module, nn.Parameter)) or (
+            value is None and (name in self.__dict__.get("_modules", {}) or name in self.__dict__.get("_parameters", {}))
+        ):
+            self.__dict__["_parameter_lists"] = None  # a new (or removed) submodule or parameter; not e.g. `training`
         super().__setattr__(name, value)
 
     def all_parameters(self) -> list[th.Tensor]:

@@ -144,7 +144,12 @@ def test_cached_parameter_lists_follow_the_model(model):
     body, heads = actor.body_parameters(), actor.head_parameters()
     assert {id(p) for p in body} | {id(p) for p in heads} == {id(p) for p in actor.parameters()}
     assert not {id(p) for p in body} & {id(p) for p in heads}
-    # a new submodule invalidates the cache
+    # switching the mode (SB3 does it at every rollout and update) keeps the cache
+    lists = actor._parameter_lists
+    actor.train(False)
+    actor.train(True)
+    assert actor._parameter_lists is lists
+    # a new submodule invalidates it
     actor.body = nn.Sequential(nn.Linear(3, 256), nn.LeakyReLU())
     assert actor.all_parameters() == list(actor.parameters())
     actor.double()
