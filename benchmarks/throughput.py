@@ -3,7 +3,8 @@ Throughput benchmark of SOUP against SB3's DDPG and TD3 (issue 5: K heads must n
 
 Every (configuration, repeat) runs in a fresh subprocess with one torch thread; the configurations are interleaved
 (repeat 1 of every configuration, then repeat 2, ...) so that a change of machine load hits them all alike; the table
-reports medians over the repeats and each row's ratio to DDPG's median measured in the same run.
+reports medians over the repeats and each row's ratio to DDPG measured in the same run (the median over the repeats
+of the ratio to DDPG's run in the same repeat).
 
 Measured per configuration (Hopper-v4, ``train_freq=1``, ``gradient_steps=1``):
 
@@ -300,9 +301,16 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
     for row in rows:
         batch_size = row["config"]["batch_size"]
         ddpg = next(r for r in rows if r["config"]["algo"] == "ddpg" and r["config"]["batch_size"] == batch_size)
-        row["speed_ratio"] = row["steps_per_s"] / ddpg["steps_per_s"]
-        row["predict_1_ratio"] = row["predict_1_ms"] / ddpg["predict_1_ms"]
-        row["predict_8_ratio"] = row["predict_8_ms"] / ddpg["predict_8_ms"]
+        # paired: each repeat's ratio to DDPG's run of the same repeat (same stretch of machine load), then the median
+        for key, ratio_key in (
+            ("steps_per_s", "speed_ratio"),
+            ("predict_1_ms", "predict_1_ratio"),
+            ("predict_8_ms", "predict_8_ratio"),
+        ):
+            ratios = [run[key] / base[key] for run, base in zip(row["repeats"], ddpg["repeats"])]
+            row[ratio_key] = float(statistics.median(ratios))
+            row[ratio_key + "_per_repeat"] = ratios
+            row[ratio_key + "_of_medians"] = row[key] / ddpg[key]
         row["flop_ratio"] = row["train_gflop"] / ddpg["train_gflop"]  # > 1: more arithmetic than DDPG per update
         row["predict_flop_ratio"] = row["predict_mflop"] / ddpg["predict_mflop"]
     memory_rows = []
