@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sb3_soup import SOUP
 from sb3_soup.experiments import checkpointing, logs
 from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
@@ -37,18 +38,14 @@ from sb3_soup.experiments.runner import (
     run_one,
 )
 
-try:
-    from sb3_soup import SOUP  # type: ignore[attr-defined]  # noqa: F401
-
-    HAS_SOUP = True
-except ImportError:
-    HAS_SOUP = False
-
-# Two cheap models: SOUP's DDPG preset and SOUP once the core algorithm is there, SB3's TD3/DDPG until then.
-MODELS = "ddpg,soup" if HAS_SOUP else "td3,sb3_ddpg"
-FAST = ["learning_starts=50", "batch_size=32", "buffer_size=5000", "policy_kwargs=dict(net_arch=[32, 32])"]
-if HAS_SOUP:
-    FAST.append("policy_kwargs=dict(net_arch=dict(pi_body=[32], pi_head=[16], qf_body=[32, 32], qf_head=[16]))")
+# Two cheap models: SOUP's DDPG preset and SOUP (adaptive confidence), with small networks.
+MODELS = "ddpg,soup"
+FAST = [
+    "learning_starts=50",
+    "batch_size=32",
+    "buffer_size=5000",
+    "policy_kwargs=dict(net_arch=dict(pi_body=[32], pi_head=[16], qf_body=[32, 32], qf_head=[16]))",
+]
 
 
 # ---------------------------------------------------------------- metrics on hand-made curves
@@ -235,7 +232,11 @@ def test_grid_suites_and_overrides(tmp_path):
     specs = build_grid("Pendulum-v1", tmp_path, suite="models", seeds=[0, 1], timesteps=100)
     assert [spec.model for spec in specs[::2]] == ["ddpg", "ma_bddpg-k5", "multi_ddpg-k5", "dbddpg-k5", "soup-k5", "td3"]
     assert specs[2].hyperparams["preset"] == "ma_bddpg" and specs[2].hyperparams["n_heads"] == 5
-    assert "n_heads" not in specs[0].hyperparams and specs[0].hyperparams["preset"] == "ddpg"
+    # DDPG is the one-head preset, whatever K the env's soup.yml entry gives (Pendulum-v1's says 5)
+    ddpg = specs[0].hyperparams
+    assert ddpg["preset"] == "ddpg"
+    settings = SOUP._resolve_settings(ddpg.get("n_heads", 1), None, None, ddpg["preset"], None, None)
+    assert (settings["n_actor_heads"], settings["n_critic_heads"], settings["mask_prob"]) == (1, 1, 1.0)
     td3 = specs[-1].hyperparams
     assert td3["policy_kwargs"] == {"net_arch": [256, 256]} and "preset" not in td3 and "critic_learning_rate" not in td3
     assert td3["gamma"] == specs[0].hyperparams["gamma"] and td3["batch_size"] == specs[0].hyperparams["batch_size"]
@@ -543,9 +544,9 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
         assert entry["max_return"] == pytest.approx(max(r.max() for r in returns))
     table = (out / "table.md").read_text()
     assert table.startswith("| Env. | Metric |") and "| Pendulum-v1 | Avg Return |" in table
-    if HAS_SOUP:  # the adaptive run logs its per-head confidence, drawn as Figure 6
-        assert any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k2" / "seed_0").columns)
-        assert (out / "confidence.png").is_file()
+    # the adaptive run logs its per-head confidence, drawn as Figure 6
+    assert any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k2" / "seed_0").columns)
+    assert (out / "confidence.png").is_file()
 
 
 def test_confidence_suite_into_the_models_folder_trains_only_what_is_new(tmp_path, capsys):
