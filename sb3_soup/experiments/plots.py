@@ -158,7 +158,9 @@ def plot_confidence(
                 ax.set_ylabel("confidence c_i (mean per episode)")
             ax.grid(alpha=0.3)
             ax.legend(title="head", fontsize="small", ncol=2 if len(heads) > 5 else 1)
-    fig.suptitle(f"Per-head confidence during training (smoothed over {smooth:.0%} of the run)", fontsize="large")
+    # on two lines for a single panel, which is too narrow for it
+    title = "Per-head confidence during training" + ("\n" if n_cols < 2 else " ") + f"(smoothed over {smooth:.0%} of the run)"
+    fig.suptitle(title, fontsize="large")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
