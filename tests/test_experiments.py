@@ -548,6 +548,15 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     assert any(col.startswith("confidence/head_") for col in logs.read_progress(out / "soup-k2" / "seed_0").columns)
     assert (out / "confidence.png").is_file()
 
+    # 4. Trap diagnostic on the trained runs. Pendulum's episodes all last 200 steps and end at 200 and 400: of the
+    # windows (50, 150], (150, 250], (250, 350], (350, 450] after the 50 warm-up steps, the 2nd and 4th are trapped.
+    assert main(["trap", str(out), "--lengths", "200-200", "--window", "100", "--eval-episodes", "1"]) == 0
+    runs = json.loads((out / "trap.json").read_text())["runs"]
+    assert len(runs) == 4
+    for run in runs:
+        assert (run["learning_steps"], run["steps_trapped"], run["last_trapped_step"]) == (400, 200, 450)
+        assert 0.0 <= run["saturation"] <= 1.0
+
 
 def test_confidence_suite_into_the_models_folder_trains_only_what_is_new(tmp_path, capsys):
     out = tmp_path / "runs"

@@ -5,6 +5,7 @@ Command line of the experiment runner.
     python -m sb3_soup.experiments run --suite confidence --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
     python -m sb3_soup.experiments report runs/hopper
     python -m sb3_soup.experiments report runs/hopper --suite confidence
+    python -m sb3_soup.experiments trap runs/hopper --suite models
 
 Suites run into the same folder share the runs they have in common (the confidence suite's ``none`` and ``adaptive``
 are the models suite's ``dbddpg`` and ``soup``): the second command trains only the runs that are new.
@@ -31,7 +32,7 @@ def _ints(text: str) -> list[int]:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    """:return: the parser of ``run`` and ``report``"""
+    """:return: the parser of ``run``, ``report`` and ``trap``"""
     parser = argparse.ArgumentParser(
         prog="python -m sb3_soup.experiments", description="Reproduce the SOUP paper's comparisons."
     )
@@ -80,7 +81,30 @@ def make_parser() -> argparse.ArgumentParser:
         "--x", dest="x_axis", default="both", choices=["episodes", "timesteps", "both"], help="curves' x-axis (default: both)"
     )
     report.add_argument("--to", dest="report_dir", help="write the report files here (default: OUT, or OUT/report-SUITE)")
+
+    trap = commands.add_parser(
+        "trap", help="steps each finished run spent in a short-fall trap, and its final actions' saturation"
+    )
+    trap.add_argument("out", help="experiment folder")
+    trap.add_argument("--suite", choices=sorted(SUITES), help="one suite's models, written to OUT/report-SUITE")
+    trap.add_argument(
+        "--lengths",
+        type=_length_range,
+        default=(21, 24),
+        help="episode lengths of the trap, SHORTEST-LONGEST (default: 21-24, Hopper's saturated-action fall)",
+    )
+    trap.add_argument("--window", type=int, default=1000, help="window in steps (default: 1000)")
+    trap.add_argument("--fraction", type=float, default=0.9, help="trapped: more than this fraction of a window's episodes")
+    trap.add_argument("--eval-episodes", type=int, default=3, help="deterministic episodes for saturation (0: skip)")
+    trap.add_argument("--to", dest="report_dir", help="write trap.md and trap.json here (default: OUT, or OUT/report-SUITE)")
     return parser
+
+
+def _length_range(text: str) -> tuple[int, int]:
+    parts = text.split("-")
+    if len(parts) != 2 or not all(part.strip().isdigit() for part in parts):
+        raise argparse.ArgumentTypeError(f"expected SHORTEST-LONGEST episode lengths such as 21-24, got {text!r}")
+    return int(parts[0]), int(parts[1])
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -191,13 +215,28 @@ def report_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def trap_command(args: argparse.Namespace) -> int:
+    """
+    :param args: parsed ``trap`` arguments
+    :return: exit status
+    """
+    from sb3_soup.experiments.trap import trap_report
+
+    table, _, _ = trap_report(
+        args.out, args.suite, args.window, args.lengths, args.fraction, args.eval_episodes, args.report_dir
+    )
+    print(table)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     :return: exit status
     """
     args = make_parser().parse_args(argv)
-    return run_command(args) if args.command == "run" else report_command(args)
+    commands = {"run": run_command, "report": report_command, "trap": trap_command}
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":

@@ -148,6 +148,14 @@ def collect_runs(out: str | os.PathLike) -> list[RunRecord]:
     return records
 
 
+def recorded_heads(out: str | os.PathLike) -> dict[str, Any]:
+    """
+    :param out: the experiment folder
+    :return: suite -> the head counts its ``run`` commands asked for (from ``grid.json``), for :func:`select_columns`
+    """
+    return {name: entry.get("heads", []) for name, entry in (read_json(Path(out) / GRID_FILE) or {}).get("suites", {}).items()}
+
+
 def select_columns(records: Sequence[RunRecord], suite: str | None, extra_heads: dict[str, Any]) -> list[Column]:
     """
     :param records: the folder's runs
@@ -407,10 +415,7 @@ def make_report(
     records = collect_runs(out)
     if not records:
         raise FileNotFoundError(f"No runs found in {out} (expected {GRID_FILE} or */seed_*/{SPEC_FILE})")
-    extra_heads = {
-        name: entry.get("heads", []) for name, entry in (read_json(out / GRID_FILE) or {}).get("suites", {}).items()
-    }
-    columns = select_columns(records, suite, extra_heads)
+    columns = select_columns(records, suite, recorded_heads(out))
     if not columns:
         raise ValueError(f"No run of the {suite!r} suite in {out}")
     baseline_name = baseline or (SUITES[suite].baseline if suite else BASELINE)

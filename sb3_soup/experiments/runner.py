@@ -21,7 +21,10 @@ import time
 import traceback
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from stable_baselines3.common.base_class import BaseAlgorithm
 
 try:
     import fcntl
@@ -80,7 +83,7 @@ def resolve_policy_kwargs(value: Any) -> dict[str, Any] | None:
     return eval(value, {"__builtins__": {}, "dict": dict, "nn": th.nn, "th": th, "torch": th})
 
 
-def algo_class(algo: str) -> type:
+def algo_class(algo: str) -> type[BaseAlgorithm]:
     """
     :param algo: ``"soup"``, ``"td3"`` or ``"sb3_ddpg"``
     :return: the class that trains it
