@@ -63,6 +63,19 @@ def test_decayed_confidence_goes_from_identity_to_uniform():
     assert strategy.diagonal == pytest.approx(1 / 3)
 
 
+def test_decayed_confidence_counts_every_env_step_warm_up_included():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=5, confidence="decayed", learning_starts=1000, seed=0)
+    strategy = model.policy.confidence
+    assert isinstance(strategy, DecayedConfidence) and strategy.decay == 0.9995  # the paper's
+    model.learn(400)  # random warm-up steps only
+    assert strategy.diagonal == pytest.approx(0.9995**400)
+    # the paper's decay reaches 1/K = 0.2 after 3,219 steps (README: before a 10k-step warm-up ends)
+    strategy.n_steps.fill_(3218)
+    assert strategy.diagonal > 0.2
+    strategy.n_steps.fill_(3219)
+    assert strategy.diagonal == 0.2
+
+
 def test_adaptive_confidence_weights_each_critic_head_by_its_confidence():
     class HandMade(AdaptiveConfidence):
         def confidence(self, obs):
