@@ -84,11 +84,13 @@ def test_trap_report_on_hand_made_runs(tmp_path, capsys):
 
     assert main(["trap", str(out), "--suite", "models", "--eval-episodes", "0"]) == 0
     printed = capsys.readouterr().out
-    assert "| DDPG | 0 / 1 | 1k / 0k (of 2k) | 2k / - | - / - |" in printed
-    assert "| SOUP (K=2) | 0 | 2k (of 2k) | 3k | - |" in printed
+    # ddpg seed 0 ends with 9 episodes of return 100 after step 2100 (of 3000, > the last 20%'s start, 2400: 6 of them)
+    assert "| DDPG | 0 / 1 | 1k / 0k (of 2k) | 2k / - | - / - | 100 / 100 |" in printed
+    assert "| SOUP (K=2) | 0 | 2k (of 2k) | 3k | - | 39 |" in printed
     assert "soup-k2/seed_1 (interrupted)" in printed
     data = json.loads((out / "report-models" / "trap.json").read_text())
-    assert data["settings"] == {"window": 1000, "lengths": [21, 24], "fraction": 0.9, "eval_episodes": 0}
+    settings = {"window": 1000, "lengths": [21, 24], "fraction": 0.9, "eval_episodes": 0, "final_fraction": 0.2}
+    assert data["settings"] == settings
     ddpg_0 = next(run for run in data["runs"] if run["model"] == "ddpg" and run["seed"] == 0)
     assert ddpg_0["steps_trapped"] == 1000 and ddpg_0["trap_return"] == pytest.approx(39.0)
     assert (out / "report-models" / "trap.md").read_text() in printed
@@ -97,6 +99,9 @@ def test_trap_report_on_hand_made_runs(tmp_path, capsys):
     _, results, skipped = trap_report(out, window=500, trap_lengths=(100, 100), eval_episodes=0, report_dir=tmp_path)
     assert {(r.model, r.seed): r.steps_trapped for r in results}[("ddpg", 1)] == 2000
     assert skipped == ["soup-k2/seed_1 (interrupted)"]
+    # the last half of ddpg seed 0 (steps > 1500): 28 trap episodes (return 39) end at 1522..2100, then 9 of 100
+    _, results, _ = trap_report(out, eval_episodes=0, report_dir=tmp_path, final_fraction=0.5)
+    assert {(r.model, r.seed): r.final_return for r in results}[("ddpg", 0)] == pytest.approx((28 * 39 + 9 * 100) / 37)
 
 
 @pytest.mark.parametrize(
@@ -114,7 +119,12 @@ def test_trap_bad_lengths(tmp_path, argv, message, capsys):
 
 @pytest.mark.parametrize(
     "kwargs, message",
-    [({"window": 0}, "window"), ({"fraction": 1.0}, "fraction"), ({"trap_lengths": (24, 21)}, "lengths")],
+    [
+        ({"window": 0}, "window"),
+        ({"fraction": 1.0}, "fraction"),
+        ({"trap_lengths": (24, 21)}, "lengths"),
+        ({"final_fraction": 0.0}, "final_fraction"),
+    ],
 )
 def test_trap_bad_settings(tmp_path, kwargs, message):
     with pytest.raises(ValueError, match=message):

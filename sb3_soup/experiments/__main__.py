@@ -96,6 +96,9 @@ def make_parser() -> argparse.ArgumentParser:
     trap.add_argument("--window", type=int, default=1000, help="window in steps (default: 1000)")
     trap.add_argument("--fraction", type=float, default=0.9, help="trapped: more than this fraction of a window's episodes")
     trap.add_argument("--eval-episodes", type=int, default=3, help="deterministic episodes for saturation (0: skip)")
+    trap.add_argument(
+        "--final-fraction", type=float, default=0.2, help="the last part of each run whose mean return is shown (default: 0.2)"
+    )
     trap.add_argument("--to", dest="report_dir", help="write trap.md and trap.json here (default: OUT, or OUT/report-SUITE)")
     return parser
 
@@ -223,7 +226,14 @@ def trap_command(args: argparse.Namespace) -> int:
     from sb3_soup.experiments.trap import trap_report
 
     table, _, _ = trap_report(
-        args.out, args.suite, args.window, args.lengths, args.fraction, args.eval_episodes, args.report_dir
+        args.out,
+        args.suite,
+        args.window,
+        args.lengths,
+        args.fraction,
+        args.eval_episodes,
+        args.report_dir,
+        args.final_fraction,
     )
     print(table)
     return 0

@@ -8,6 +8,7 @@ A run is *trapped* in a window of ``window`` steps after its random warm-up (``l
 run's Monitor CSV; an episode belongs to the window in which it ends, and a window in which no episode ends is not
 trapped. The *saturation* of a run is the fraction of action components of its final model (``model.zip``), acting
 deterministically for a few evaluation episodes, whose magnitude in the policy's [-1, 1] scale exceeds ``bound``.
+Where the run ended up is the mean return of the training episodes that end in the last part of its steps.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ class TrapResult:
     :param steps_trapped: steps of the trapped windows
     :param last_trapped_step: the last step of the last trapped window (``None``: never trapped)
     :param trap_return: mean return of the trap-length episodes after the warm-up (``None``: none)
+    :param final_return: mean return of the episodes that end in the last ``final_fraction`` of the run's steps
     :param saturation: fraction of saturated final deterministic action components (``None``: not measured)
     """
 
@@ -51,6 +53,7 @@ class TrapResult:
     steps_trapped: int
     last_trapped_step: int | None
     trap_return: float | None
+    final_return: float | None = None
     saturation: float | None = None
 
 
@@ -117,6 +120,7 @@ def measure_run(
     trap_lengths: tuple[int, int] = HOPPER_FALL_LENGTHS,
     fraction: float = 0.9,
     eval_episodes: int = 3,
+    final_fraction: float = 0.2,
 ) -> TrapResult:
     """
     :param record: a finished run
@@ -125,6 +129,7 @@ def measure_run(
     :param trap_lengths: see :func:`trapped_windows`
     :param fraction: see :func:`trapped_windows`
     :param eval_episodes: episodes for :func:`action_saturation` (0: not measured)
+    :param final_fraction: the part of the run, at its end, whose episodes give ``final_return``
     :return: the run's measurement
     """
     spec = record.spec
@@ -134,7 +139,8 @@ def measure_run(
     trapped = trapped_windows(lengths, start, record.step, window, trap_lengths, fraction)
     after = np.cumsum(lengths) > start
     is_trap = (lengths >= trap_lengths[0]) & (lengths <= trap_lengths[1])
-    returns = monitor["r"].to_numpy(dtype=float)[after & is_trap]
+    returns = monitor["r"].to_numpy(dtype=float)
+    final = returns[np.cumsum(lengths) > record.step * (1.0 - final_fraction)]
     last = int(start + (np.flatnonzero(trapped)[-1] + 1) * window) if trapped.any() else None
     saturation = None
     if eval_episodes > 0:
@@ -147,19 +153,20 @@ def measure_run(
         learning_steps=len(trapped) * window,
         steps_trapped=int(trapped.sum()) * window,
         last_trapped_step=last,
-        trap_return=float(returns.mean()) if returns.size else None,
+        trap_return=float(returns[after & is_trap].mean()) if (after & is_trap).any() else None,
+        final_return=float(final.mean()) if final.size else None,
         saturation=saturation,
     )
 
 
-def format_trap_table(results: Sequence[TrapResult], window: int) -> str:
+def format_trap_table(results: Sequence[TrapResult], window: int, final_fraction: float = 0.2) -> str:
     """:return: a markdown table, one row per model, seeds separated by ``/``"""
     by_model: dict[str, list[TrapResult]] = {}
     for result in results:
         by_model.setdefault(result.label, []).append(result)
     lines = [
-        "| model | seeds | steps trapped | last trapped step | final actions saturated |",
-        "|---|---|---|---|---|",
+        f"| model | seeds | steps trapped | last trapped step | final actions saturated | return, last {final_fraction:.0%} |",
+        "|---|---|---|---|---|---|",
     ]
 
     def steps(value: int | None) -> str:
@@ -173,9 +180,13 @@ def format_trap_table(results: Sequence[TrapResult], window: int) -> str:
             " / ".join(steps(row.steps_trapped) for row in rows) + f" (of {steps(total)})",
             " / ".join(steps(row.last_trapped_step) for row in rows),
             " / ".join("-" if row.saturation is None else f"{row.saturation:.0%}" for row in rows),
+            " / ".join("-" if row.final_return is None else f"{row.final_return:.0f}" for row in rows),
         ]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + f"\n\n{window}-step windows after each run's warm-up.\n"
+    return "\n".join(lines) + (
+        f"\n\n{window}-step windows after each run's warm-up; the last column is the mean return of the training "
+        f"episodes that end in the last {final_fraction:.0%} of each run's steps.\n"
+    )
 
 
 def trap_report(
@@ -186,6 +197,7 @@ def trap_report(
     fraction: float = 0.9,
     eval_episodes: int = 3,
     report_dir: str | os.PathLike | None = None,
+    final_fraction: float = 0.2,
 ) -> tuple[str, list[TrapResult], list[str]]:
     """
     Measure every finished run of a folder (or of one suite of it) and write ``trap.md`` and ``trap.json``.
@@ -193,6 +205,7 @@ def trap_report(
     :param out: the experiment folder
     :param suite: only this suite's models, with its column titles (written to ``out/report-<suite>``)
     :param report_dir: where to write (default: ``out``, or ``out/report-<suite>`` with a suite)
+    :param final_fraction: see :func:`measure_run`
     :return: the table, the measurements, and the runs left out because they are not finished
     """
     out = Path(out)
@@ -200,6 +213,8 @@ def trap_report(
         raise ValueError(f"window must be a positive number of steps, got {window}")
     if not 0.0 <= fraction < 1.0:
         raise ValueError(f"fraction must be in [0, 1), got {fraction}")
+    if not 0.0 < final_fraction <= 1.0:
+        raise ValueError(f"final_fraction must be in (0, 1], got {final_fraction}")
     if trap_lengths[0] > trap_lengths[1] or trap_lengths[0] < 1:
         raise ValueError(f"lengths must be 'SHORTEST-LONGEST' with 1 <= SHORTEST <= LONGEST, got {trap_lengths}")
     records = collect_runs(out)
@@ -212,14 +227,20 @@ def trap_report(
             if record.status != "finished":
                 skipped.append(f"{record.spec.key} ({record.status})")
                 continue
-            results.append(measure_run(record, column.label, window, trap_lengths, fraction, eval_episodes))
-    table = format_trap_table(results, window)
+            results.append(measure_run(record, column.label, window, trap_lengths, fraction, eval_episodes, final_fraction))
+    table = format_trap_table(results, window, final_fraction)
     if skipped:
         table += "\nNot finished, left out: " + ", ".join(skipped) + "\n"
     target = Path(report_dir) if report_dir is not None else (out / f"report-{suite}" if suite else out)
     target.mkdir(parents=True, exist_ok=True)
     (target / "trap.md").write_text(table)
-    settings = {"window": window, "lengths": list(trap_lengths), "fraction": fraction, "eval_episodes": eval_episodes}
+    settings = {
+        "window": window,
+        "lengths": list(trap_lengths),
+        "fraction": fraction,
+        "eval_episodes": eval_episodes,
+        "final_fraction": final_fraction,
+    }
     data = {"settings": settings, "runs": [dataclasses.asdict(result) for result in results], "not_finished": skipped}
     (target / "trap.json").write_text(json.dumps(data, indent=2))
     return table, results, skipped
