@@ -129,3 +129,12 @@ def test_trap_bad_lengths(tmp_path, argv, message, capsys):
 def test_trap_bad_settings(tmp_path, kwargs, message):
     with pytest.raises(ValueError, match=message):
         trap_report(tmp_path, **kwargs)
+
+
+def test_a_run_without_learning_starts_uses_its_algorithms_default(tmp_path):
+    spec = build_grid("Hopper-v4", tmp_path, models=["soup"], heads=[2], seeds=[0], timesteps=3000)[0]
+    spec.hyperparams.pop("learning_starts", None)
+    _hand_made_run(spec, [100] * 30)
+    _, results, _ = trap_report(tmp_path, window=500, eval_episodes=0, trap_lengths=(100, 100))
+    # SOUP's default warm-up is 1000 steps: four whole windows of 500 after it (SB3's 100 would give five)
+    assert (results[0].learning_steps, results[0].steps_trapped) == (2000, 2000)

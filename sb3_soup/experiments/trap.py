@@ -14,6 +14,7 @@ Where the run ended up is the mean return of the training episodes that end in t
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import os
 from collections.abc import Sequence
@@ -27,7 +28,6 @@ from sb3_soup.experiments.report import RunRecord, collect_runs, recorded_heads,
 from sb3_soup.experiments.runner import FINAL_MODEL, algo_class
 
 HOPPER_FALL_LENGTHS = (21, 24)
-SB3_LEARNING_STARTS = 100  # SB3's default, for a run whose hyper-parameters do not give it
 
 
 @dataclasses.dataclass
@@ -113,6 +113,11 @@ def action_saturation(model: Any, env_id: str, episodes: int = 3, seed: int = 0,
     return saturated / max(total, 1)
 
 
+def _default_learning_starts(algo: str) -> int:
+    """:return: the warm-up of a run whose hyper-parameters do not give it: its algorithm's default"""
+    return int(inspect.signature(algo_class(algo)).parameters["learning_starts"].default)
+
+
 def measure_run(
     record: RunRecord,
     label: str,
@@ -135,7 +140,7 @@ def measure_run(
     spec = record.spec
     monitor = logs.read_monitor(spec.run_dir)
     lengths = monitor["l"].to_numpy(dtype=np.int64)
-    start = int(spec.hyperparams.get("learning_starts", SB3_LEARNING_STARTS))
+    start = int(spec.hyperparams.get("learning_starts", _default_learning_starts(spec.algo)))
     trapped = trapped_windows(lengths, start, record.step, window, trap_lengths, fraction)
     after = np.cumsum(lengths) > start
     is_trap = (lengths >= trap_lengths[0]) & (lengths <= trap_lengths[1])
