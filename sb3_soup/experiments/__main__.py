@@ -227,13 +227,13 @@ def trap_command(args: argparse.Namespace) -> int:
 
     table, _, _ = trap_report(
         args.out,
-        args.suite,
-        args.window,
-        args.lengths,
-        args.fraction,
-        args.eval_episodes,
-        args.report_dir,
-        args.final_fraction,
+        suite=args.suite,
+        window=args.window,
+        trap_lengths=args.lengths,
+        fraction=args.fraction,
+        eval_episodes=args.eval_episodes,
+        report_dir=args.report_dir,
+        final_fraction=args.final_fraction,
     )
     print(table)
     return 0

@@ -156,6 +156,18 @@ def recorded_heads(out: str | os.PathLike) -> dict[str, Any]:
     return {name: entry.get("heads", []) for name, entry in (read_json(Path(out) / GRID_FILE) or {}).get("suites", {}).items()}
 
 
+def report_target(out: str | os.PathLike, suite: str | None, report_dir: str | os.PathLike | None) -> Path:
+    """
+    :param out: the experiment folder
+    :param suite: the suite reported, if one
+    :param report_dir: where the user asked for the files (``None``: the default)
+    :return: the folder the report files go to (created): ``report_dir``, else ``out/report-<suite>``, else ``out``
+    """
+    target = Path(report_dir) if report_dir is not None else (Path(out) / f"report-{suite}" if suite else Path(out))
+    target.mkdir(parents=True, exist_ok=True)
+    return target
+
+
 def select_columns(records: Sequence[RunRecord], suite: str | None, extra_heads: dict[str, Any]) -> list[Column]:
     """
     :param records: the folder's runs
@@ -432,8 +444,7 @@ def make_report(
         for env_id in envs:
             add_speed_ups(metrics[env_id], baseline_model)
 
-    target = Path(report_dir) if report_dir is not None else (out / f"report-{suite}" if suite else out)
-    target.mkdir(parents=True, exist_ok=True)
+    target = report_target(out, suite, report_dir)
     accounted = [record for column in [*columns, *baseline_columns] for record in column.records]
     files = ["table.md", "metrics.json"]
     table = format_table(

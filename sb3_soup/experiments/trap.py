@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from sb3_soup.experiments import logs
-from sb3_soup.experiments.report import RunRecord, collect_runs, recorded_heads, select_columns
+from sb3_soup.experiments.report import RunRecord, collect_runs, recorded_heads, report_target, select_columns
 from sb3_soup.experiments.runner import FINAL_MODEL, algo_class
 
 HOPPER_FALL_LENGTHS = (21, 24)
@@ -57,6 +57,11 @@ class TrapResult:
     saturation: float | None = None
 
 
+def _is_trap(lengths: np.ndarray, trap_lengths: tuple[int, int]) -> np.ndarray:
+    """:return: which episodes have a trap length (both bounds included)"""
+    return (lengths >= trap_lengths[0]) & (lengths <= trap_lengths[1])
+
+
 def trapped_windows(
     lengths: Sequence[int] | np.ndarray,
     start: int,
@@ -79,7 +84,7 @@ def trapped_windows(
     n_windows = max(0, (end - start) // window)
     inside = (ends > start) & (ends <= start + n_windows * window)
     index = (ends[inside] - start - 1) // window  # (E,) window of each episode
-    is_trap = (lengths[inside] >= trap_lengths[0]) & (lengths[inside] <= trap_lengths[1])
+    is_trap = _is_trap(lengths[inside], trap_lengths)
     episodes = np.bincount(index, minlength=n_windows)  # (W,)
     traps = np.bincount(index, weights=is_trap, minlength=n_windows)  # (W,)
     return (episodes > 0) & (traps > fraction * np.maximum(episodes, 1))
@@ -142,10 +147,10 @@ def measure_run(
     lengths = monitor["l"].to_numpy(dtype=np.int64)
     start = int(spec.hyperparams.get("learning_starts", _default_learning_starts(spec.algo)))
     trapped = trapped_windows(lengths, start, record.step, window, trap_lengths, fraction)
-    after = np.cumsum(lengths) > start
-    is_trap = (lengths >= trap_lengths[0]) & (lengths <= trap_lengths[1])
+    ends = np.cumsum(lengths)  # step at which each episode ends
+    trap_after_warm_up = (ends > start) & _is_trap(lengths, trap_lengths)
     returns = monitor["r"].to_numpy(dtype=float)
-    final = returns[np.cumsum(lengths) > record.step * (1.0 - final_fraction)]
+    final = returns[ends > record.step * (1.0 - final_fraction)]
     last = int(start + (np.flatnonzero(trapped)[-1] + 1) * window) if trapped.any() else None
     saturation = None
     if eval_episodes > 0:
@@ -158,7 +163,7 @@ def measure_run(
         learning_steps=len(trapped) * window,
         steps_trapped=int(trapped.sum()) * window,
         last_trapped_step=last,
-        trap_return=float(returns[after & is_trap].mean()) if (after & is_trap).any() else None,
+        trap_return=float(returns[trap_after_warm_up].mean()) if trap_after_warm_up.any() else None,
         final_return=float(final.mean()) if final.size else None,
         saturation=saturation,
     )
@@ -236,8 +241,7 @@ def trap_report(
     table = format_trap_table(results, window, final_fraction)
     if skipped:
         table += "\nNot finished, left out: " + ", ".join(skipped) + "\n"
-    target = Path(report_dir) if report_dir is not None else (out / f"report-{suite}" if suite else out)
-    target.mkdir(parents=True, exist_ok=True)
+    target = report_target(out, suite, report_dir)
     (target / "trap.md").write_text(table)
     settings = {
         "window": window,
