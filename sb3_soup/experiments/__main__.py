@@ -49,6 +49,13 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--workers", type=int, help="parallel runs (default: number of cores available)")
     run.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
     run.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
+    run.add_argument(
+        "--eval-freq",
+        type=int,
+        default=10_000,
+        help="evaluate the deterministic policy every N steps, as SB3's EvalCallback (0: never; default: 10000)",
+    )
+    run.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default: 10)")
     run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
     run.add_argument("--hyperparams-file", help="RL-Zoo style YAML (default: sb3_soup/hyperparams/soup.yml)")
     run.add_argument(
@@ -131,6 +138,8 @@ def run_command(args: argparse.Namespace) -> int:
         hyperparams_file=args.hyperparams_file,
         checkpoint_freq=args.checkpoint_freq,
         stop_after=args.stop_after,
+        eval_freq=args.eval_freq,
+        eval_episodes=args.eval_episodes,
     )
     held = _held_by_legacy_runner(args.out, specs)
     write_grid(args.out, specs, args.suite, args.heads)

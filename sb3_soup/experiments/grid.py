@@ -74,6 +74,7 @@ class Variant:
     settings: dict[str, Any]
     uses_heads: bool = True
     same_as: str | None = None
+    source: str = "soup"
 
 
 VARIANTS: dict[str, Variant] = {
@@ -87,6 +88,10 @@ VARIANTS: dict[str, Variant] = {
         Variant("td3", "td3", "TD3", {}, uses_heads=False),
         # Not in any suite: SB3's own DDPG, a sanity baseline for the paper-faithful `ddpg` preset.
         Variant("sb3_ddpg", "sb3_ddpg", "DDPG (SB3)", {}, uses_heads=False),
+        # The benchmark suite's peers: SB3's DDPG and TD3 exactly as the RL Zoo trains them (its MuJoCo entries: lr 1e-3,
+        # batch 256, tau 0.005, N(0, 0.1) noise, 10k random steps, net_arch [400, 300]).
+        Variant("ddpg_zoo", "sb3_ddpg", "DDPG (RL Zoo)", {}, uses_heads=False, source="zoo"),
+        Variant("td3_zoo", "td3", "TD3 (RL Zoo)", {}, uses_heads=False, source="zoo"),
         # The confidence suite: DBDDPG (K actor and K critic heads, bootstrap masks) with each confidence strategy.
         # "none" is the dbddpg preset and "adaptive" the soup preset, so they share the models suite's runs. A preset
         # fixes the confidence, so "fixed" and "decayed" are given without one: SOUP's defaults are then K x K heads
@@ -121,6 +126,8 @@ SUITES: dict[str, Suite] = {
     "confidence": Suite(("none", "fixed", "decayed", "adaptive"), (DEFAULT_HEADS,), "none"),
     # Figure 7 (and Table 1's K=10 columns): Speed Up against DDPG when the folder has it (the models suite's runs).
     "heads": Suite(("soup",), (3, 5, 10), "ddpg"),
+    # What peers publish: deterministic evaluations of SOUP against SB3's DDPG and TD3 as the RL Zoo trains them.
+    "benchmark": Suite(("ddpg_zoo", "td3_zoo"), (DEFAULT_HEADS,), "ddpg_zoo"),
 }
 
 
@@ -141,6 +148,8 @@ class RunSpec:
     :param run_dir: the run's folder
     :param checkpoint_freq: save a checkpoint every this many steps
     :param stop_after: stop (resumably) after this many new steps in this session; ``None``: run to the end
+    :param eval_freq: evaluate the deterministic policy every this many steps (0: never), as SB3's ``EvalCallback``
+    :param eval_episodes: episodes per evaluation
     """
 
     env_id: str
@@ -155,6 +164,8 @@ class RunSpec:
     run_dir: str
     checkpoint_freq: int = 10_000
     stop_after: int | None = None
+    eval_freq: int = 10_000
+    eval_episodes: int = 10
 
     @property
     def key(self) -> str:
@@ -296,6 +307,8 @@ def build_grid(
     hyperparams_file: str | os.PathLike | None = None,
     checkpoint_freq: int = 10_000,
     stop_after: int | None = None,
+    eval_freq: int = 10_000,
+    eval_episodes: int = 10,
 ) -> list[RunSpec]:
     """
     Expand a suite into its runs.
@@ -317,6 +330,8 @@ def build_grid(
     :param hyperparams_file: the RL-Zoo style file to read
     :param checkpoint_freq: checkpoint every this many steps
     :param stop_after: see :class:`RunSpec`
+    :param eval_freq: see :class:`RunSpec`
+    :param eval_episodes: see :class:`RunSpec`
     :return: the runs, in table order (model, then seed)
     """
     if suite not in SUITES:
@@ -334,7 +349,7 @@ def build_grid(
     for name in names:
         variant = VARIANTS[name]
         for n_heads in head_counts if variant.uses_heads else [None]:
-            stored, params = _stored_variant(variant, n_heads, base, overrides)
+            stored, params = _stored_variant(variant, env_id, n_heads, base, overrides)
             model = _model_id(stored.name, n_heads)
             for seed in seeds:
                 specs.append(
@@ -351,6 +366,8 @@ def build_grid(
                         run_dir=str(Path(out) / model / f"seed_{seed}"),
                         checkpoint_freq=int(checkpoint_freq),
                         stop_after=stop_after,
+                        eval_freq=int(eval_freq),
+                        eval_episodes=int(eval_episodes),
                     )
                 )
     return specs
@@ -360,13 +377,43 @@ def _model_id(name: str, n_heads: int | None) -> str:
     return f"{name}-k{n_heads}" if n_heads is not None else name
 
 
+ZOO_NOISE_TYPE = "normal"
+
+
+def zoo_hyperparams(algo: str, env_id: str) -> dict[str, Any]:
+    """
+    The RL Zoo's own hyper-parameters for an SB3 algorithm on an env, as ``python -m rl_zoo3.train`` reads them.
+
+    :param algo: ``"td3"`` or ``"sb3_ddpg"``
+    :param env_id: the environment id
+    :return: constructor arguments, with the Gaussian noise's std as ``noise_std`` (the runner makes it
+        ``NormalActionNoise``)
+    """
+    import rl_zoo3
+
+    zoo_algo = {"td3": "td3", "sb3_ddpg": "ddpg"}[algo]
+    file = Path(rl_zoo3.__file__).parent / "hyperparams" / f"{zoo_algo}.yml"
+    with open(file) as stream:
+        entries = yaml.safe_load(stream) or {}
+    if env_id not in entries:
+        raise ValueError(f"the RL Zoo has no {zoo_algo} hyper-parameters for {env_id} (in {file}); use another env")
+    entry = dict(entries[env_id])
+    noise_type = entry.get("noise_type")
+    if noise_type not in (None, ZOO_NOISE_TYPE):
+        raise ValueError(f"the RL Zoo's {zoo_algo} entry for {env_id} uses {noise_type!r} noise; the runner supports 'normal'")
+    params = {key: value for key, value in entry.items() if key not in ZOO_ONLY_KEYS}
+    params["noise_std"] = float(entry.get("noise_std", 0.0)) if noise_type else 0.0
+    return params
+
+
 def variant_params(
-    variant: Variant, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
+    variant: Variant, env_id: str, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
 ) -> dict[str, Any]:
     """
     A variant's constructor arguments.
 
     :param variant: the variant
+    :param env_id: the environment id
     :param n_heads: its K (``None`` for single-head variants)
     :param base: SOUP's defaults updated with the env's hyper-parameters
     :param overrides: from :func:`parse_overrides`
@@ -380,19 +427,21 @@ def variant_params(
     params.update(overrides.get("*", {}))
     params.update(overrides.get(variant.name, {}))
     params.update(overrides.get(model, {}))
+    if variant.source == "zoo":
+        return {**zoo_hyperparams(variant.algo, env_id), **overrides.get(variant.name, {}), **overrides.get(model, {})}
     if variant.algo != "soup":
         params = {**peer_hyperparams(params), **overrides.get(variant.name, {}), **overrides.get(model, {})}
     return params
 
 
 def _stored_variant(
-    variant: Variant, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
+    variant: Variant, env_id: str, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
 ) -> tuple[Variant, dict[str, Any]]:
     """The variant a run is stored as (``same_as`` when the settings agree) and its hyper-parameters."""
-    params = variant_params(variant, n_heads, base, overrides)
+    params = variant_params(variant, env_id, n_heads, base, overrides)
     if variant.same_as is not None:
         twin = VARIANTS[variant.same_as]
-        if variant_params(twin, n_heads, base, overrides) == params:
+        if variant_params(twin, env_id, n_heads, base, overrides) == params:
             return twin, params
     return variant, params
 

@@ -1,6 +1,7 @@
 """
-A run's logs: the Monitor CSV (one row per training episode) and SB3's CSV logger (``progress.csv``), both kept
-continuous across resumes: rows written after the checkpoint a run resumes from are cut, then new rows are appended.
+A run's logs: the Monitor CSV (one row per training episode), SB3's CSV logger (``progress.csv``) and the
+deterministic evaluations (``evaluations.csv``, one row per evaluation episode), all kept continuous across resumes:
+rows written after the checkpoint a run resumes from are cut, then new rows are appended.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from stable_baselines3.common.monitor import Monitor
 
 MONITOR_FILE = "monitor.csv"
 PROGRESS_FILE = "progress.csv"
+EVALUATIONS_FILE = "evaluations.csv"
+EVALUATION_COLUMNS = ("step", "episode", "return", "length")
 STEP_KEY = "time/total_timesteps"
 _MONITOR_HEADER_LINES = 2  # '#{json}' then 'r,l,t'
 
@@ -66,14 +69,57 @@ def truncate_progress(run_dir: str | os.PathLike, max_step: int) -> None:
     :param run_dir: the run's folder
     :param max_step: the last step to keep (the checkpoint's ``num_timesteps``)
     """
-    path = Path(run_dir) / PROGRESS_FILE
+    _truncate_csv(Path(run_dir) / PROGRESS_FILE, STEP_KEY, max_step)
+
+
+def truncate_evaluations(run_dir: str | os.PathLike, max_step: int) -> None:
+    """
+    Drop the rows of the run's ``evaluations.csv`` written after step ``max_step``.
+
+    :param run_dir: the run's folder
+    :param max_step: the last step to keep (the checkpoint's ``num_timesteps``)
+    """
+    _truncate_csv(Path(run_dir) / EVALUATIONS_FILE, "step", max_step)
+
+
+def append_evaluation(run_dir: str | os.PathLike, step: int, returns: list[float], lengths: list[int]) -> None:
+    """
+    Append one evaluation (its episodes) to the run's ``evaluations.csv``.
+
+    :param run_dir: the run's folder
+    :param step: the training step it was made at
+    :param returns: the return of each episode
+    :param lengths: the length of each episode
+    """
+    path = Path(run_dir) / EVALUATIONS_FILE
+    new = not path.is_file() or path.stat().st_size == 0
+    with open(path, "a", newline="") as stream:
+        writer = csv.writer(stream, lineterminator="\n")
+        if new:
+            writer.writerow(EVALUATION_COLUMNS)
+        writer.writerows((int(step), episode, float(r), int(n)) for episode, (r, n) in enumerate(zip(returns, lengths)))
+
+
+def read_evaluations(run_dir: str | os.PathLike) -> pd.DataFrame:
+    """
+    :param run_dir: the run's folder
+    :return: its evaluation episodes (columns ``step``, ``episode``, ``return``, ``length``); empty when there are none
+    """
+    path = Path(run_dir) / EVALUATIONS_FILE
+    if not path.is_file() or path.stat().st_size == 0:
+        return pd.DataFrame({name: pd.Series(dtype=float) for name in EVALUATION_COLUMNS})
+    return pd.read_csv(path)
+
+
+def _truncate_csv(path: Path, step_column: str, max_step: int) -> None:
+    """Drop the rows of a CSV file whose ``step_column`` is greater than ``max_step`` (rows without a step stay)."""
     if not path.is_file() or path.stat().st_size == 0:
         return
     with open(path, newline="") as stream:
         rows = list(csv.reader(stream))
     header, body = rows[0], rows[1:]
-    if STEP_KEY in header:
-        column = header.index(STEP_KEY)
+    if step_column in header:
+        column = header.index(step_column)
         body = [row for row in body if row[column] == "" or float(row[column]) <= max_step]
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")

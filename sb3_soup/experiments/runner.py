@@ -2,7 +2,8 @@
 Train one (model, seed) run in the current process: build or resume the model, log, checkpoint, mark it done.
 
 The run's folder holds ``spec.json`` (its :class:`~sb3_soup.experiments.grid.RunSpec`), ``monitor.csv``,
-``progress.csv``, ``status.json`` (step reached, for the progress bars), ``checkpoints/`` while it runs, and at the
+``progress.csv``, ``evaluations.csv`` (deterministic evaluations every ``eval_freq`` steps, as SB3's ``EvalCallback``),
+``status.json`` (step reached, for the progress bars), ``checkpoints/`` while it runs, and at the
 end ``model.zip`` plus ``done.json``, or ``error.json`` when it failed. While a process trains the run it holds an
 exclusive lock on ``run.lock``, so that two ``run`` commands given the same folder (e.g. two suites sharing runs)
 never train one run twice at once: the second reports it ``busy``. Heavy imports (torch, SB3) happen inside
@@ -127,8 +128,45 @@ def build_model(spec: Any, env: Any) -> Any:
     return algo_class(spec.algo)(policy, env, seed=spec.seed, device="cpu", verbose=0, **kwargs)
 
 
-def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any) -> Any:
-    """The callback doing progress reports, periodic checkpoints and resumable stops."""
+def evaluation_seed(run_seed: int, step: int) -> int:
+    """
+    The seed of the evaluation episodes at ``step``: a function of the run's seed and the step only, so that a resumed
+    run evaluates on the same episodes as an uninterrupted one, and every model of a seed on the same ones.
+
+    :param run_seed: the run's seed
+    :param step: the training step
+    :return: the seed
+    """
+    import numpy as np
+
+    return int(np.random.SeedSequence([run_seed, step]).generate_state(1)[0])
+
+
+def evaluate(model: Any, env: Any, step: int, spec: Any, run_dir: Path) -> None:
+    """
+    Evaluate the deterministic policy for ``spec.eval_episodes`` episodes (SB3's ``evaluate_policy``, as
+    ``EvalCallback`` does) and append them to ``evaluations.csv``. Acting greedily draws nothing from the training's
+    random generators, so evaluating does not change the run.
+
+    :param model: the model
+    :param env: the evaluation env (a VecEnv of one Monitor-wrapped env)
+    :param step: the training step
+    :param spec: the run's :class:`~sb3_soup.experiments.grid.RunSpec`
+    :param run_dir: the run's folder
+    """
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from sb3_soup.experiments import logs
+
+    env.seed(evaluation_seed(spec.seed, step))
+    returns, lengths = evaluate_policy(
+        model, env, n_eval_episodes=spec.eval_episodes, deterministic=True, return_episode_rewards=True, warn=False
+    )
+    logs.append_evaluation(run_dir, step, list(returns), list(lengths))  # type: ignore[arg-type]
+
+
+def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any, eval_env: Any) -> Any:
+    """The callback doing progress reports, evaluations, periodic checkpoints and resumable stops."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     from sb3_soup.experiments import checkpointing
@@ -141,6 +179,8 @@ def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any) -> Any
             self.last_checkpoint = start_step
 
         def _on_step(self) -> bool:
+            if spec.eval_freq > 0 and self.num_timesteps % spec.eval_freq == 0:
+                evaluate(self.model, eval_env, self.num_timesteps, spec, run_dir)
             now = time.monotonic()
             if now - self.last_report > 1.0:
                 self.last_report = now
@@ -339,6 +379,7 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
     """Build or resume the model and train it; return (status, steps done)."""
     import gymnasium as gym
     import torch as th
+    from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from sb3_soup.experiments import checkpointing, logs
@@ -355,10 +396,12 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
     if checkpoint is not None:
         logs.truncate_monitor(run_dir, int(checkpoint.state.get("episodes", 0)))
         logs.truncate_progress(run_dir, checkpoint.step)
+        logs.truncate_evaluations(run_dir, checkpoint.step)
     else:  # nothing to continue from: start the logs afresh
-        for name in (logs.MONITOR_FILE, logs.PROGRESS_FILE):
+        for name in (logs.MONITOR_FILE, logs.PROGRESS_FILE, logs.EVALUATIONS_FILE):
             (run_dir / name).unlink(missing_ok=True)
     env = DummyVecEnv([lambda: logs.monitor_env(gym.make(spec.env_id), run_dir)])
+    eval_env = DummyVecEnv([lambda: Monitor(gym.make(spec.env_id))])
     try:
         if checkpoint is not None:
             # The run goes on exactly where it stopped (random streams and env state restored); checkpoints from before
@@ -372,7 +415,7 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
             start_step = 0
         model.set_logger(logs.make_logger(run_dir))
         report_status(run_dir, "running", start_step, spec.timesteps)
-        callback = _make_callback(spec, run_dir, start_step, state)
+        callback = _make_callback(spec, run_dir, start_step, state, eval_env)
         remaining = checkpointing.remaining_steps(model, spec.timesteps)
         if remaining > 0:
             try:
@@ -387,6 +430,7 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
         model.save(run_dir / FINAL_MODEL)
     finally:
         env.close()
+        eval_env.close()
     write_json(run_dir / DONE_FILE, {"timesteps": step, **state(), "finished_at": time.time()})
     shutil.rmtree(run_dir / checkpointing.CHECKPOINT_DIR, ignore_errors=True)
     report_status(run_dir, "finished", step, spec.timesteps)
