@@ -1,4 +1,6 @@
 # sb3-soup developer commands. `make demo` and `make test` each install what they need first.
+# The interpreter to install into and run: `python3` from PATH (an activated virtual environment's, if any), or
+# `make test PYTHON=path/to/python`.
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip
 # The CPU build of torch: install it before anything that depends on torch, or pip pulls a multi-GB CUDA build.

@@ -8,6 +8,7 @@ import importlib.metadata
 import importlib.util
 import os
 import re
+import site
 import subprocess
 import sys
 import venv
@@ -313,14 +314,45 @@ def wheel_with_hook(tmp_path: Path) -> Path:
     return wheel
 
 
+def venv_over_this_environment(target: Path) -> str:
+    """
+    A throwaway venv whose own site-packages come first and which then sees the packages of the interpreter running
+    the tests (torch, SB3, ...), whether that is a virtual environment, a conda env or a bare system Python.
+
+    ``EnvBuilder(system_site_packages=True)`` would expose the *base* interpreter's site-packages instead, which lack
+    the packages when the tests run in a virtual environment. Here the venv is created isolated and a ``.pth`` file in
+    its site-packages runs ``site.addsitedir`` on each site-packages folder of the running interpreter, the way Python
+    adds the system site to a venv: after the venv's own, with their ``.pth`` files processed.
+
+    :param target: the venv's folder
+    :return: the venv's python
+    """
+    venv.EnvBuilder(system_site_packages=False, with_pip=False).create(target)
+    python = target / "bin" / "python"
+    own_site = check(
+        subprocess.run([str(python), "-c", "import site; print(site.getsitepackages()[0])"], capture_output=True, text=True)
+    ).stdout.strip()
+    ours = [*site.getsitepackages(), *([site.getusersitepackages()] if site.ENABLE_USER_SITE else [])]
+    lines = "".join(f"import site; site.addsitedir({folder!r})\n" for folder in ours if Path(folder).is_dir())
+    (Path(own_site) / "_running_environment.pth").write_text(lines)
+    return str(python)
+
+
+def test_throwaway_venv_sees_this_environment(tmp_path):
+    python = venv_over_this_environment(tmp_path / "venv")
+    where = "import sys, yaml, pytest; print(sys.prefix, yaml.__file__)"
+    prefix, yaml_file = check(subprocess.run([python, "-c", where], capture_output=True, text=True)).stdout.split()
+    assert Path(prefix) == tmp_path / "venv"  # its own environment...
+    assert Path(yaml_file) == Path(yaml.__file__)  # ...over the packages of the one running the tests
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("mode", ["wheel", "editable"])
 def test_install_ships_hook_and_uninstall_removes_it(tmp_path, mode):
-    """Install (no deps) into a fresh venv over the system site, check the hook registers SOUP, uninstall."""
+    """Install (no deps) into a fresh venv over this environment, check the hook registers SOUP, uninstall."""
     target = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(target)
-    python = str(target / "bin" / "python")
+    python = venv_over_this_environment(target)
     pip = ["-m", "pip", "--python", python]
     if mode == "wheel":
         check(run([*pip, "install", "--no-deps", "-q", str(wheel_with_hook(tmp_path))], tmp_path))
