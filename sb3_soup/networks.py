@@ -16,8 +16,11 @@ from stable_baselines3.common.type_aliases import PyTorchObs
 from torch import nn
 from torch.nn import functional as F
 
-HeadIndex = int | None
-"""Which head(s) to run: an int runs that head alone, ``None`` runs all heads at once."""
+HeadIndex = int | th.Tensor | None
+"""
+Which head(s) to run: an int runs that head alone (output ``(B, out)``), a tensor of H head indices runs those heads
+(output ``(H, B, out)``, an index may repeat), ``None`` runs all K heads at once (output ``(K, B, out)``).
+"""
 
 
 def scale_grad(x: th.Tensor, scale: float) -> th.Tensor:
@@ -58,19 +61,19 @@ class VectorizedLinear(nn.Module):
 
     def forward(self, x: th.Tensor, head: HeadIndex = None) -> th.Tensor:
         """
-        :param x: ``(B, in)`` input shared by the heads, or ``(K or 1, B, in)`` one input per head
-        :param head: run only this head (then ``x`` is ``(B, in)`` and the output ``(B, out)``)
-        :return: ``(K, B, out)`` for all heads, ``(B, out)`` for one head
+        :param x: ``(B, in)`` input shared by the heads, or ``(H or 1, B, in)`` one input per head run
+        :param head: which heads to run (see :data:`HeadIndex`); with an int, ``x`` is ``(B, in)``
+        :return: ``(K, B, out)`` for all heads, ``(H, B, out)`` for H indexed heads, ``(B, out)`` for one head
         """
-        if head is not None:
+        if isinstance(head, int):
             return th.addmm(self.bias[head], x, self.weight[head])  # (B, out)
+        weight, bias = (self.weight, self.bias) if head is None else (self.weight[head], self.bias[head])  # (H, in, out)
         if x.dim() == 2:
             x = x.unsqueeze(0)  # (1, B, in), broadcast over the heads
-        weight = self.weight
         n_heads = max(x.shape[0], weight.shape[0])
         # One fused batched matmul + bias. An input shared by the heads is expanded (a view, no copy): cheaper than
         # th.matmul's broadcasting, which copies it, and than a separate bias addition on the (K, B, out) output
-        return th.baddbmm(self.bias, x.expand(n_heads, -1, -1), weight.expand(n_heads, -1, -1))  # (K, B, out)
+        return th.baddbmm(bias, x.expand(n_heads, -1, -1), weight.expand(n_heads, -1, -1))  # (K, B, out)
 
     def extra_repr(self) -> str:
         return f"in_features={self.in_features}, out_features={self.out_features}, n_heads={self.n_heads}"
@@ -310,7 +313,9 @@ class EnsembleCritic(EnsembleModel):
         - ``head=k``, actions ``(B, A)``: head k only, returns ``(B, 1)``;
         - ``head=None``, actions ``(B, A)``: every head on the same actions, returns ``(K, B, 1)``;
         - ``head=None``, actions ``(K or 1, B, A)``: head k scores actions[k] (broadcast when one side is 1),
-          returns ``(P, B, 1)``: the paired evaluation used to train all heads at once.
+          returns ``(P, B, 1)``: the paired evaluation used to train all heads at once;
+        - ``head=idx`` (H indices), actions ``(B, A)`` or ``(H or 1, B, A)``: head ``idx[h]`` scores actions[h],
+          returns ``(H, B, 1)``.
         """
         return self.heads(self.body_features(obs, actions, grad_scale), head)
 
@@ -325,3 +330,20 @@ class EnsembleCritic(EnsembleModel):
         features = self.body_features(obs, candidates)  # (Ka, B, F)
         q = self.heads(features.reshape(1, n_candidates * batch_size, -1))  # (Kc, Ka * B, 1)
         return q.reshape(self.n_heads, n_candidates, batch_size).permute(2, 0, 1)  # (B, Kc, Ka)
+
+
+def soft_update(model: EnsembleModel, target: EnsembleModel, tau: float, head: int | th.Tensor | None = None) -> None:
+    """
+    Polyak update (eq. 6) of the shared body and of the heads trained: one (``head=k``), those of a (K,) bool mask, or
+    every head (``head=None``). Buffers (e.g. batch-norm statistics) are copied.
+    """
+    with th.no_grad():
+        th._foreach_lerp_(target.body_parameters(), model.body_parameters(), tau)
+        if head is None:
+            th._foreach_lerp_(target.head_parameters(), model.head_parameters(), tau)
+        else:
+            rows = [head] if isinstance(head, int) else th.nonzero(head).flatten().tolist()
+            for row in rows:
+                th._foreach_lerp_([p[row] for p in target.head_parameters()], [p[row] for p in model.head_parameters()], tau)
+        for target_buffer, buffer in zip(target.buffers(), model.buffers()):
+            target_buffer.copy_(buffer)

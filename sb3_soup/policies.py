@@ -11,7 +11,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_soup.confidence import ConfidenceStrategy, make_confidence
-from sb3_soup.networks import EnsembleActor, EnsembleCritic, EnsembleModel
+from sb3_soup.networks import EnsembleActor, EnsembleCritic, HeadIndex
 from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
 from sb3_soup.validation import check_int
 
@@ -94,6 +94,22 @@ def e_actor(candidates: th.Tensor, e_q: th.Tensor) -> tuple[th.Tensor, th.Tensor
     """
     chosen = e_q.argmax(dim=1)  # (B,)
     return candidates[chosen, th.arange(candidates.shape[1], device=candidates.device)], chosen
+
+
+class TrainedHeads(NamedTuple):
+    """The heads of one network (actor or critic) that serve a list of head pairs being trained."""
+
+    per_pair: list[int]  # (H,) the head serving each pair
+    # what the network's forward takes: an int for one pair (outputs (B, ...), which broadcast as (1, B, ...)), None for
+    # all its heads in order or its only head, else the tensor of per_pair
+    index: HeadIndex
+    rows: int | th.Tensor | None  # the heads trained, for EnsembleAdam and soft_update: one, a (K,) bool mask, None: all
+    n_heads: int  # how many distinct heads: the shared body's gradient is the mean over them
+
+    @property
+    def scale(self) -> float:
+        """Gradient scale of the shared body."""
+        return 1.0 / self.n_heads
 
 
 class Selection(NamedTuple):
@@ -254,9 +270,40 @@ class SOUPPolicy(BasePolicy):
         """Number of (actor head, critic head) pairs, i.e. of bootstrap masks: max(n_actor_heads, n_critic_heads)."""
         return max(self.n_actor_heads, self.n_critic_heads)
 
-    def pair_heads(self, pair: int) -> tuple[int, int]:
-        """The actor head and the critic head of pair ``pair`` (a single head serves every pair)."""
-        return (pair if self.n_actor_heads > 1 else 0), (pair if self.n_critic_heads > 1 else 0)
+    def actor_heads(self, pairs: list[int]) -> TrainedHeads:
+        """The actor heads of head pairs ``pairs`` (actor head k is in pair k; a single head serves every pair)."""
+        return self._trained_heads(pairs, self.n_actor_heads)
+
+    def critic_heads(self, pairs: list[int]) -> TrainedHeads:
+        """The critic heads of head pairs ``pairs`` (critic head k is in pair k; a single head serves every pair)."""
+        return self._trained_heads(pairs, self.n_critic_heads)
+
+    def _trained_heads(self, pairs: list[int], n_heads: int) -> TrainedHeads:
+        per_pair = list(pairs) if n_heads > 1 else [0] * len(pairs)
+        distinct = sorted(set(per_pair))
+        index: HeadIndex = None
+        if len(pairs) == 1:
+            index = per_pair[0]  # one pair: the network's plain (B, ...) single-head pass
+        elif n_heads > 1 and per_pair != list(range(n_heads)):
+            index = th.as_tensor(per_pair, device=self.device)
+        rows: int | th.Tensor | None = None
+        if len(distinct) == 1 and n_heads > 1:
+            rows = distinct[0]
+        elif len(distinct) < n_heads:
+            rows = th.zeros(n_heads, dtype=th.bool, device=self.device)
+            rows[distinct] = True
+        return TrainedHeads(per_pair, index, rows, len(distinct))
+
+    def describe_pairs(self, pairs: list[int], per_pair_values: th.Tensor) -> str:
+        """
+        :param pairs: head pairs
+        :param per_pair_values: a value per pair (e.g. losses)
+        :return: the pairs whose value is not finite (all of them when each is), with their actor and critic heads
+        """
+        finite = th.isfinite(per_pair_values.detach().reshape(len(pairs), -1)).all(dim=1).tolist()
+        bad = [pair for pair, ok in zip(pairs, finite) if not ok] or pairs
+        actor, critic = self.actor_heads(bad).per_pair, self.critic_heads(bad).per_pair
+        return f"head pair(s) {bad} (actor head(s) {actor}, critic head(s) {critic})"
 
     def select(self, obs: PyTorchObs) -> Selection:
         """
@@ -295,21 +342,6 @@ class SOUPPolicy(BasePolicy):
         self.critic.set_training_mode(mode)
         self.confidence.train(mode)
         self.training = mode
-
-
-def soft_update(model: EnsembleModel, target: EnsembleModel, tau: float, head: int | None = None) -> None:
-    """
-    Polyak update (eq. 6) of the shared body and of one head (``head=k``) or every head (``head=None``).
-    Buffers (e.g. batch-norm statistics) are copied.
-    """
-    with th.no_grad():
-        th._foreach_lerp_(target.body_parameters(), model.body_parameters(), tau)
-        if head is None:
-            th._foreach_lerp_(target.head_parameters(), model.head_parameters(), tau)
-        else:
-            th._foreach_lerp_([p[head] for p in target.head_parameters()], [p[head] for p in model.head_parameters()], tau)
-        for target_buffer, buffer in zip(target.buffers(), model.buffers()):
-            target_buffer.copy_(buffer)
 
 
 MlpPolicy = SOUPPolicy

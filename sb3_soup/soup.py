@@ -34,9 +34,10 @@ from sb3_soup.buffers import (
     check_mask_args,
 )
 from sb3_soup.confidence import ConfidenceRollout, ConfidenceStrategy, check_strategy, check_update_logs
-from sb3_soup.networks import EnsembleActor, EnsembleCritic
+from sb3_soup.losses import actor_loss, critic_loss, td_target
+from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
-from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, soft_update
+from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads
 from sb3_soup.presets import normalize_preset_name, resolve_preset
 from sb3_soup.saving import (
     SAVE_FORMAT_VERSION,
@@ -52,7 +53,8 @@ SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
 __version__ = package_version()
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
-TRAIN_HEADS = ("active", "all")
+TRAIN_HEADS = ("active", "all", "all_critics")
+TARGET_Q = ("own", "min_pair")
 
 
 def _all_finite(value: np.ndarray | dict[str, np.ndarray]) -> bool:
@@ -156,6 +158,10 @@ _ARGUMENT_CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "confidence_baseline": _bool_check("running-mean reward baseline in REINFORCE"),
     "mask_prob": _float_check(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off"),
     "train_heads": lambda name, value: check_choice(name, value, TRAIN_HEADS, "which head pairs each gradient step trains"),
+    "target_q": lambda name, value: check_choice(name, value, TARGET_Q, "which target critic heads each head bootstraps from"),
+    "policy_delay": _int_check(1, "critic updates per actor and target update"),
+    "target_policy_noise": _float_check(0.0, math.inf, False, True, "std of the target action's smoothing noise, 0: none"),
+    "target_noise_clip": _float_check(0.0, math.inf, False, True, "limit of the target action's smoothing noise"),
     "noise_std": _float_check(0.0, math.inf, False, True, "initial exploration noise std"),
     "noise_decay": _float_check(0.0, 1.0, True, False, "noise std decay per env step"),
     "noise_std_min": _float_check(0.0, math.inf, False, True, "lowest exploration noise std"),
@@ -227,7 +233,16 @@ class SOUP(OffPolicyAlgorithm):
     :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off
         (default 0.5, 1.0 for the "ddpg" preset)
     :param train_heads: "active": train the episode's active head pair (the paper); "all": every head pair
-        on each minibatch, each with its own masked loss (Bootstrapped DQN style)
+        on each minibatch, each with its own masked loss (Bootstrapped DQN style); "all_critics": every critic head, the
+        active pair's actor head
+    :param target_q: the value of the next state each critic head bootstraps from (eq. 4): "own", its own target head's
+        (the paper); "min_pair", the smaller of its own target head's and one random other's (clipped double Q across
+        the ensemble, as REDQ); with one critic head both are "own"
+    :param policy_delay: the actor and the target networks are updated once every ``policy_delay`` critic updates
+        (TD3's delayed policy updates; the paper: 1)
+    :param target_policy_noise: std of the Gaussian noise added to the target actions (TD3's target policy smoothing;
+        the paper: 0, none), in the [-1, 1] scaled action space
+    :param target_noise_clip: limit of the absolute value of that noise
     :param noise_std: initial std of the Gaussian exploration noise (in the [-1, 1] scaled action space)
     :param noise_decay: multiplicative decay of the noise std per environment step, in (0, 1]
     :param noise_std_min: the noise std never goes below this
@@ -283,6 +298,10 @@ class SOUP(OffPolicyAlgorithm):
         confidence_baseline: bool = True,
         mask_prob: float | None = None,
         train_heads: str = "active",
+        target_q: str = "own",
+        policy_delay: int = 1,
+        target_policy_noise: float = 0.0,
+        target_noise_clip: float = 0.5,
         noise_std: float = 0.2,
         noise_decay: float = 0.999995,
         noise_std_min: float = 0.05,
@@ -315,6 +334,10 @@ class SOUP(OffPolicyAlgorithm):
             confidence_lr=confidence_lr,
             confidence_baseline=confidence_baseline,
             train_heads=train_heads,
+            target_q=target_q,
+            policy_delay=policy_delay,
+            target_policy_noise=target_policy_noise,
+            target_noise_clip=target_noise_clip,
             noise_std=noise_std,
             noise_decay=noise_decay,
             noise_std_min=noise_std_min,
@@ -363,6 +386,10 @@ class SOUP(OffPolicyAlgorithm):
         self.confidence_lr: float = args["confidence_lr"]
         self.confidence_baseline: bool = args["confidence_baseline"]
         self.train_heads: str = args["train_heads"]
+        self.target_q: str = args["target_q"]
+        self.policy_delay: int = args["policy_delay"]
+        self.target_policy_noise: float = args["target_policy_noise"]
+        self.target_noise_clip: float = args["target_noise_clip"]
         self.noise_std: float = args["noise_std"]
         self.noise_decay: float = args["noise_decay"]
         self.noise_std_min: float = args["noise_std_min"]
@@ -624,56 +651,120 @@ class SOUP(OffPolicyAlgorithm):
         self._update_learning_rate([self.actor.optimizer])
         critic_lr = self.critic_lr_schedule(self._current_progress_remaining)
         update_learning_rate(self.critic.optimizer, critic_lr)
-        assert self._active_heads is not None
 
         critic_losses, actor_losses = [], []
-        for gradient_step in range(gradient_steps):
-            replay_data: Samples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr,assignment]
-            if self.train_heads == "active":
-                # n_envs > 1: the gradient steps take the envs' active pairs in turn
-                pair = int(self._active_heads[(self._n_updates + gradient_step) % len(self._active_heads)])
-                losses = self._train_pair(replay_data, pair)
-            else:
-                losses = self._train_all_pairs(replay_data)
-            if losses is not None:
-                critic_losses.append(losses[0])
-                actor_losses.append(losses[1])
-        self._n_updates += gradient_steps
+        for _ in range(gradient_steps):
+            self._n_updates += 1
+            data: Samples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr,assignment]
+            critic_value, actor_value = self._gradient_step(data)
+            critic_losses += critic_value
+            actor_losses += actor_value
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_learning_rate", critic_lr)
         self.logger.record("train/noise_std", self.exploration_std)
         if critic_losses:
             self.logger.record("train/critic_loss", np.mean(critic_losses))
+        if actor_losses:
             self.logger.record("train/actor_loss", np.mean(actor_losses))
         for key, value in self._update_confidence().items():
             self.logger.record(f"train/{key}", value)
 
-    def _check_loss(self, name: str, value: float, where: int | th.Tensor | str) -> None:
+    def _gradient_step(self, data: Samples) -> tuple[list[float], list[float]]:
         """
-        The one place where training stops on a non-finite value (when ``check_finite``): costs a ``math.isfinite``
-        on a loss already fetched for logging; the head pairs are only worked out once a value is non-finite.
+        One gradient step of the training scheme on a minibatch: the critic heads of the trained pairs (eqs. 3-4), then,
+        every ``policy_delay`` steps, their actor heads (eq. 5) and the soft update of the targets (eq. 6).
+
+        :return: the critic loss and the actor loss, each as a list of zero or one value
+        """
+        masks = data.masks.T.unsqueeze(-1).float()  # (P, B, 1)
+        critic_pairs, actor_pairs = self._training_pairs(masks)
+        if not critic_pairs:
+            return [], []  # this minibatch holds nothing for the heads to train
+
+        with th.no_grad():
+            next_q = self._next_q(data.next_observations, critic_pairs)  # (H, B, 1)
+            target_q = td_target(data.rewards, data.dones, self.gamma, next_q)  # eq. 4
+        critic_heads = self.policy.critic_heads(critic_pairs)
+        current_q = self.critic(data.observations, data.actions, head=critic_heads.index, grad_scale=critic_heads.scale)
+        per_pair = critic_loss(current_q, target_q, self._pair_masks(masks, critic_pairs))  # (H,), eq. 3
+        critic_value = self._optimize(self.critic, per_pair, critic_heads, critic_pairs, "critic_loss")
+        if self._n_updates % self.policy_delay != 0 or not actor_pairs:
+            return [critic_value], []
+
+        actor_heads, scoring_heads = self.policy.actor_heads(actor_pairs), self.policy.critic_heads(actor_pairs)
+        actions_pi = self.actor(data.observations, head=actor_heads.index, grad_scale=actor_heads.scale)  # (H, B, A)
+        q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.index)  # (H, B, 1)
+        per_pair = actor_loss(q_pi, self._pair_masks(masks, actor_pairs))  # (H,), eq. 5
+        actor_value = self._optimize(self.actor, per_pair, actor_heads, actor_pairs, "actor_loss")
+        soft_update(self.actor, self.actor_target, self.tau, actor_heads.rows)  # eq. 6
+        soft_update(self.critic, self.critic_target, self.tau, critic_heads.rows)
+        return [critic_value], [actor_value]
+
+    def _training_pairs(self, masks: th.Tensor) -> tuple[list[int], list[int]]:
+        """
+        The training scheme: which head pairs this minibatch trains, as (critic pairs, actor pairs). "active": the pair
+        drawn for the episode (Algorithm 1; with n_envs > 1 the gradient steps take the envs' pairs in turn); "all": every
+        pair; "all_critics": every critic head, the active pair's actor head. A pair whose mask keeps none of the
+        minibatch is left out.
+
+        :param masks: ``(P, B, 1)`` bootstrap masks of the minibatch
+        """
+        assert self._active_heads is not None
+        active = [int(self._active_heads[(self._n_updates - 1) % len(self._active_heads)])]
+        every = list(range(self.policy.n_pairs))
+        critic_pairs = active if self.train_heads == "active" else every
+        actor_pairs = every if self.train_heads == "all" else active
+        has_data = masks.sum(dim=(1, 2)) > 0  # (P,)
+        if bool(has_data.all()):
+            return critic_pairs, actor_pairs
+        kept = has_data.tolist()
+        return [pair for pair in critic_pairs if kept[pair]], [pair for pair in actor_pairs if kept[pair]]
+
+    @staticmethod
+    def _pair_masks(masks: th.Tensor, pairs: list[int]) -> th.Tensor:
+        """The masks ``(H, B, 1)`` of ``pairs`` among all pairs' ``(P, B, 1)``."""
+        return masks if len(pairs) == len(masks) else masks[pairs]
+
+    def _next_q(self, next_observations: PyTorchObs, pairs: list[int]) -> th.Tensor:
+        """
+        Each pair's value of the next state, which eq. 4 bootstraps from: its target critic head at its target actor head's
+        action (the paper). With ``target_policy_noise`` the action is smoothed with clipped Gaussian noise (TD3); with
+        ``target_q="min_pair"`` the value is the smaller of its own target critic head's and one random other's (the
+        clipped double Q of TD3 across the ensemble, as REDQ).
+
+        :return: ``(H, B, 1)``
+        """
+        actor_heads, critic_heads = self.policy.actor_heads(pairs), self.policy.critic_heads(pairs)
+        next_actions = self.actor_target(next_observations, head=actor_heads.index)  # (H or 1, B, A)
+        if self.target_policy_noise > 0:
+            clip = self.target_noise_clip
+            noise = (th.randn_like(next_actions) * self.target_policy_noise).clamp(-clip, clip)
+            next_actions = (next_actions + noise).clamp(-1.0, 1.0)
+        features = self.critic_target.body_features(next_observations, next_actions)  # (H or 1, B, F)
+        next_q = self.critic_target.heads(features, critic_heads.index)  # (H, B, 1)
+        if self.target_q == "min_pair" and self.n_critic_heads > 1:
+            own = th.as_tensor(critic_heads.per_pair, device=self.device)  # (H,)
+            others = (own + th.randint(1, self.n_critic_heads, own.shape, device=self.device)) % self.n_critic_heads
+            next_q = th.minimum(next_q, self.critic_target.heads(features, others))
+        return next_q
+
+    def _check_loss(self, name: str, value: float, where: Callable[[], str]) -> None:
+        """
+        The one place where training stops on a non-finite loss (when ``check_finite``): costs a ``math.isfinite``
+        on a loss already fetched for logging; ``where`` is only called once a value is non-finite.
 
         :param name: the loss ("critic_loss", "actor_loss", "confidence_loss")
         :param value: its value
-        :param where: the head pair it trained (int), the per-pair losses it summed (tensor, all-heads training) or a
-            description (e.g. the confidence strategy)
+        :param where: says what the loss trained (which head pairs, the confidence strategy)
         """
         if not self.check_finite or math.isfinite(value):
             return
-        if isinstance(where, th.Tensor):
-            bad = th.nonzero(~th.isfinite(where.detach().reshape(len(where), -1)).all(dim=1)).flatten().tolist()
-            which = f"head pair(s) {bad} (all-heads training; actor head k with critic head k)"
-        elif isinstance(where, int):
-            actor_head, critic_head = self.policy.pair_heads(where)
-            which = f"head pair {where} (actor head {actor_head}, critic head {critic_head})"
-        else:
-            which = where
         raise FloatingPointError(
-            f"non-finite {name} ({value}) for {which} at update {self._n_updates} (step {self.num_timesteps}): the Q values "
-            "or their targets diverged. This update was applied, so the model's parameters may be non-finite too: resume "
-            "from an earlier checkpoint with lower learning rates or a rescaled reward, or pass check_finite=False to "
-            "train on anyway"
+            f"non-finite {name} ({value}) for {where()} at update {self._n_updates} (step {self.num_timesteps}): the Q "
+            "values or their targets diverged. This update was applied, so the model's parameters may be non-finite too: "
+            "resume from an earlier checkpoint with lower learning rates or a rescaled reward, or pass check_finite=False "
+            "to train on anyway"
         )
 
     def _check_selection(self, selection: Selection) -> None:
@@ -707,81 +798,28 @@ class SOUP(OffPolicyAlgorithm):
             "checkpoint (with lower learning rates or a rescaled reward), or pass check_finite=False to act on anyway"
         )
 
-    def _train_pair(self, data: Samples, pair: int) -> tuple[float, float] | None:
+    def _optimize(
+        self, model: EnsembleActor | EnsembleCritic, per_pair: th.Tensor, heads: TrainedHeads, pairs: list[int], name: str
+    ) -> float:
         """
-        Paper mode (Algorithm 1): one DDPG step for the active pair (actor head, critic head) on the transitions
-        its mask keeps. Gradients reach the shared bodies through this pair only; other heads are left untouched.
+        One gradient step on ``model`` alone (the actor loss leaves no gradient in the critic) for the pairs' losses: each
+        head gets the gradient of its own loss (the mean over the pairs when one head serves them all), and the body,
+        whose gradient is scaled by ``heads.scale``, the mean over its heads. The heads left out keep their values and
+        their Adam state (see EnsembleAdam).
+
+        :return: the loss, checked to be finite (``check_finite``)
         """
-        actor_head, critic_head = self.policy.pair_heads(pair)
-        masks = data.masks[:, pair].unsqueeze(1).float()  # (B, 1)
-        n_kept = masks.sum()
-        if n_kept.item() == 0:
-            return None  # this minibatch holds nothing for this head
-        with th.no_grad():
-            next_actions = self.actor_target(data.next_observations, head=actor_head)  # (B, A)
-            next_q = self.critic_target(data.next_observations, next_actions, head=critic_head)  # (B, 1)
-            target_q = data.rewards + (1 - data.dones) * self.gamma * next_q  # (B, 1), eq. 4
-
-        current_q = self.critic(data.observations, data.actions, head=critic_head)  # (B, 1)
-        critic_loss = (masks * (target_q - current_q) ** 2).sum() / n_kept  # eq. 3, masked
-        self._optimize(self.critic, critic_loss, critic_head)
-
-        actions_pi = self.actor(data.observations, head=actor_head)  # (B, A)
-        actor_loss = -(masks * self.critic(data.observations, actions_pi, head=critic_head)).sum() / n_kept  # eq. 5
-        self._optimize(self.actor, actor_loss, actor_head)
-
-        soft_update(self.actor, self.actor_target, self.tau, head=actor_head)  # eq. 6
-        soft_update(self.critic, self.critic_target, self.tau, head=critic_head)
-        critic_value, actor_value = critic_loss.item(), actor_loss.item()
-        self._check_loss("critic_loss", critic_value, pair)
-        self._check_loss("actor_loss", actor_value, pair)
-        return critic_value, actor_value
-
-    def _train_all_pairs(self, data: Samples) -> tuple[float, float] | None:
-        """
-        Every pair on the same minibatch in one batched pass, each with its own masked loss. A shared body gets
-        the mean of the gradients of the heads above it, a head its own (a single head serving every pair, the mean).
-        """
-        n_pairs, n_actor, n_critic = self.policy.n_pairs, self.n_actor_heads, self.n_critic_heads
-        masks = data.masks.T.unsqueeze(-1).float()  # (P, B, 1)
-        n_kept = masks.sum(dim=1, keepdim=True)  # (P, 1, 1)
-        has_data = n_kept.view(-1) > 0  # (P,)
-        if not bool(has_data.any()):
-            return None
-        n_kept = n_kept.clamp(min=1)
-        with th.no_grad():
-            next_actions = self.actor_target(data.next_observations)  # (Ka, B, A)
-            next_q = self.critic_target(data.next_observations, next_actions)  # (P, B, 1): head k scores actor head k
-            target_q = data.rewards + (1 - data.dones) * self.gamma * next_q  # (P, B, 1)
-
-        current_q = self.critic(data.observations, data.actions, grad_scale=1 / n_critic)  # (Kc, B, 1)
-        per_pair = (masks * (target_q - current_q) ** 2).sum(dim=1) / n_kept.view(-1, 1)  # (P, 1)
-        critic_loss = per_pair.sum() * n_critic / n_pairs
-        self._optimize(self.critic, critic_loss, None if bool(has_data.all()) else has_data[:n_critic])
-
-        actions_pi = self.actor(data.observations, grad_scale=1 / n_actor)  # (Ka, B, A)
-        q_pi = self.critic(data.observations, actions_pi)  # (P, B, 1)
-        actor_per_pair = -(masks * q_pi).sum(dim=1) / n_kept.view(-1, 1)  # (P, 1)
-        actor_loss = actor_per_pair.sum() * n_actor / n_pairs
-        self._optimize(self.actor, actor_loss, None if bool(has_data.all()) else has_data[:n_actor])
-
-        soft_update(self.actor, self.actor_target, self.tau)
-        soft_update(self.critic, self.critic_target, self.tau)
-        critic_value, actor_value = critic_loss.item(), actor_loss.item()
-        self._check_loss("critic_loss", critic_value, per_pair)
-        self._check_loss("actor_loss", actor_value, actor_per_pair)
-        return critic_value, actor_value
-
-    @staticmethod
-    def _optimize(model: EnsembleActor | EnsembleCritic, loss: th.Tensor, head: int | th.Tensor | None) -> None:
-        """Gradient step on ``model`` alone (the actor loss leaves no gradient in the critic); ``head``: see EnsembleAdam."""
+        loss = per_pair.sum() * heads.n_heads / len(pairs)
         optimizer = model.optimizer
         optimizer.zero_grad()
         loss.backward(inputs=model.all_parameters())
         if isinstance(optimizer, EnsembleAdam):
-            optimizer.step(head=head)
+            optimizer.step(head=heads.rows)
         else:
             optimizer.step()
+        value = loss.item()
+        self._check_loss(name, value, lambda: self.policy.describe_pairs(pairs, per_pair))
+        return value
 
     def _update_confidence(self) -> dict[str, float]:
         """One update of the confidence strategy on the selections made since the last one (all envs)."""
@@ -796,7 +834,8 @@ class SOUP(OffPolicyAlgorithm):
         rollout = ConfidenceRollout(obs_batch, th.cat(q_matrices), th.cat(chosen), th.cat(rewards))
         logs = check_update_logs(self.policy.confidence, self.policy.confidence.update(rollout))
         if "confidence_loss" in logs:
-            self._check_loss("confidence_loss", logs["confidence_loss"], f"the {type(self.policy.confidence).__name__}")
+            strategy = type(self.policy.confidence).__name__
+            self._check_loss("confidence_loss", logs["confidence_loss"], lambda: f"the {strategy}")
         return logs
 
     # ----- logging, saving --------------------------------------------------------------------------------------

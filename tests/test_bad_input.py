@@ -119,8 +119,12 @@ INVALID = [
     (dict(preset="td3"), "preset", re.escape("one of ['dbddpg', 'ddpg', 'ma_bddpg', 'multi_ddpg', 'soup']")),
     (dict(preset=3), "preset", re.escape("one of ['dbddpg', 'ddpg', 'ma_bddpg', 'multi_ddpg', 'soup']")),
     (dict(preset="dbddpg", confidence="adaptive"), "preset='dbddpg'", "sets confidence='none'"),
-    (dict(train_heads="some"), "train_heads", re.escape("one of ('active', 'all')")),
-    (dict(train_heads=None), "train_heads", re.escape("one of ('active', 'all')")),
+    (dict(train_heads="some"), "train_heads", re.escape("one of ('active', 'all', 'all_critics')")),
+    (dict(train_heads=None), "train_heads", re.escape("one of ('active', 'all', 'all_critics')")),
+    (dict(target_q="max"), "target_q", re.escape("one of ('own', 'min_pair')")),
+    (dict(policy_delay=0), "policy_delay", "integer >= 1"),
+    (dict(target_policy_noise=-0.1), "target_policy_noise", re.escape("a float in [0, inf)")),
+    (dict(target_noise_clip=float("nan")), "target_noise_clip", re.escape("a float in [0, inf)")),
     (dict(tau=0.0), "tau", re.escape("a float in (0, 1]")),
     (dict(gamma=1.5), "gamma", re.escape("a float in [0, 1]")),
     (dict(batch_size=0), "batch_size", "an integer >= 1"),
@@ -330,10 +334,7 @@ def test_non_finite_losses_name_the_loss_and_the_head_pair(train_heads):
     model = _trained(train_heads=train_heads)
     _poison(model.critic_target, 1)  # targets only: acting stays finite, the critic loss of pair 1 does not
     model._active_heads[:] = 1
-    which = {
-        "active": re.escape("head pair 1 (actor head 1, critic head 1)"),
-        "all": re.escape("head pair(s) [1] (all-heads training; actor head k with critic head k)"),
-    }[train_heads]
+    which = re.escape("head pair(s) [1] (actor head(s) [1], critic head(s) [1])")
     with pytest.raises(FloatingPointError, match=rf"non-finite critic_loss \(nan\) for {which} at update \d+ \(step 31\)"):
         model.learn(10, reset_num_timesteps=False)
     assert model.num_timesteps == 31  # stopped at the first update that met it

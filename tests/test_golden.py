@@ -18,5 +18,5 @@ def test_golden_run_is_reproduced(name):
     expected, got = GOLDEN[name], run_case(name)
     np.testing.assert_allclose(got["actions"], expected["actions"], rtol=0, atol=1e-6)
     # the sha256 pins the exact bits on the machine that recorded them; another CPU may round differently
-    assert got["parameter_sum"] == pytest.approx(expected["parameter_sum"], rel=1e-9, abs=1e-6)
-    assert got["parameter_abs_sum"] == pytest.approx(expected["parameter_abs_sum"], rel=1e-9)
+    assert got["parameter_sum"] == pytest.approx(expected["parameter_sum"], rel=1e-7)
+    assert got["parameter_abs_sum"] == pytest.approx(expected["parameter_abs_sum"], rel=1e-7)

@@ -1,4 +1,7 @@
-"""Algorithm 1's update: one head pair per step, masked losses, per-head targets; K = 1 is DDPG."""
+"""
+The training schemes on one minibatch (``SOUP._gradient_step``): Algorithm 1's active pair, all pairs, all critics;
+masked losses, per-head targets, pessimistic and smoothed targets, delayed actor updates; K = 1 is DDPG.
+"""
 
 import copy
 
@@ -35,6 +38,13 @@ def _batch(n_masks: int, masks: np.ndarray | None = None, seed: int = 0) -> Boot
     )
 
 
+def _step(model: SOUP, data: BootstrappedReplayBufferSamples, pair: int = 0) -> tuple[list[float], list[float]]:
+    """One gradient step of the model's scheme on ``data``, with ``pair`` as the episode's active head pair."""
+    model._active_heads = np.array([pair])
+    model._n_updates += 1
+    return model._gradient_step(data)
+
+
 def _snapshot(model: SOUP) -> dict[str, th.Tensor]:
     return {name: value.detach().clone() for name, value in model.policy.state_dict().items()}
 
@@ -60,7 +70,7 @@ def _body_changed(before: dict[str, th.Tensor], after: dict[str, th.Tensor], pre
 def test_active_pair_step_changes_that_head_and_the_bodies_only():
     model = _model()
     before = _snapshot(model)
-    model._train_pair(_batch(3), pair=1)
+    _step(model, _batch(3), pair=1)
     after = _snapshot(model)
     for prefix in ("actor.", "critic.", "actor_target.", "critic_target."):
         assert _changed_heads(before, after, prefix) == [1], prefix
@@ -73,10 +83,10 @@ def test_other_heads_stay_untouched_over_many_steps_of_one_head():
     """Adam's momentum must not move a head that is not trained (per-head optimizer state)."""
     model = _model()
     for _ in range(3):
-        model._train_pair(_batch(3), pair=0)
+        _step(model, _batch(3), pair=0)
     before = _snapshot(model)
     for seed in range(3):
-        model._train_pair(_batch(3, seed=seed), pair=2)
+        _step(model, _batch(3, seed=seed), pair=2)
     assert _changed_heads(before, _snapshot(model), "actor.") == [2]
     assert _changed_heads(before, _snapshot(model), "critic.") == [2]
 
@@ -98,10 +108,7 @@ def test_masked_out_transitions_give_no_gradient(train_heads):
     results = []
     for data in (batch, perturbed):
         model = _model(train_heads=train_heads)
-        if train_heads == "active":
-            model._train_pair(data, pair=1)
-        else:
-            model._train_all_pairs(data)
+        _step(model, data, pair=1)
         results.append(_snapshot(model))
     checked = ("actor.heads", "critic.heads") if train_heads == "active" else ("critic.heads",)
     for name, value in results[0].items():
@@ -116,13 +123,13 @@ def test_all_zero_masks_mean_no_update_and_no_nan():
     before = _snapshot(model)
     masks = np.ones((BATCH, 3), dtype=bool)
     masks[:, 2] = False
-    assert model._train_pair(_batch(3, masks), pair=2) is None
+    assert _step(model, _batch(3, masks), pair=2) == ([], [])
     after = _snapshot(model)
     assert all(th.equal(value, after[name]) for name, value in before.items())
 
     model = _model(train_heads="all")
     before = _snapshot(model)
-    critic_loss, actor_loss = model._train_all_pairs(_batch(3, masks))
+    (critic_loss,), (actor_loss,) = _step(model, _batch(3, masks))
     after = _snapshot(model)
     assert np.isfinite(critic_loss) and np.isfinite(actor_loss)
     assert _changed_heads(before, after, "critic.") == [0, 1]  # head 2 saw nothing: no update
@@ -132,10 +139,75 @@ def test_all_zero_masks_mean_no_update_and_no_nan():
 def test_all_heads_step_updates_every_head():
     model = _model(train_heads="all")
     before = _snapshot(model)
-    model._train_all_pairs(_batch(3))
+    _step(model, _batch(3))
     after = _snapshot(model)
     assert _changed_heads(before, after, "actor.") == [0, 1, 2]
     assert _changed_heads(before, after, "critic.") == [0, 1, 2]
+
+
+def test_all_critics_step_updates_every_critic_head_and_the_active_actor_head():
+    model = _model(train_heads="all_critics")
+    before = _snapshot(model)
+    _step(model, _batch(3), pair=2)
+    after = _snapshot(model)
+    assert _changed_heads(before, after, "critic.") == [0, 1, 2]
+    assert _changed_heads(before, after, "critic_target.") == [0, 1, 2]
+    assert _changed_heads(before, after, "actor.") == [2]
+    assert _changed_heads(before, after, "actor_target.") == [2]
+
+
+def test_policy_delay_updates_the_actor_and_the_targets_every_nth_critic_update():
+    model = _model(train_heads="all", policy_delay=2)
+    before = _snapshot(model)
+    critic_loss, actor_loss = _step(model, _batch(3))  # update 1: the critic alone
+    after = _snapshot(model)
+    assert len(critic_loss) == 1 and actor_loss == []
+    assert _changed_heads(before, after, "critic.") == [0, 1, 2]
+    assert all(th.equal(value, after[name]) for name, value in before.items() if not name.startswith("critic."))
+    critic_loss, actor_loss = _step(model, _batch(3, seed=1))  # update 2: critic, actor, targets
+    final = _snapshot(model)
+    assert len(critic_loss) == 1 and len(actor_loss) == 1
+    for prefix in ("actor.", "actor_target.", "critic_target."):
+        assert _changed_heads(after, final, prefix) == [0, 1, 2], prefix
+
+
+def _next_q(model: SOUP, data: BootstrappedReplayBufferSamples, pairs: list[int]) -> th.Tensor:
+    with th.no_grad():
+        return model._next_q(data.next_observations, pairs)
+
+
+def test_min_pair_target_is_the_smaller_of_the_own_and_another_target_head():
+    own_model, min_model = _model(), _model(target_q="min_pair")
+    min_model.policy.load_state_dict(own_model.policy.state_dict())
+    data = _batch(3)
+    own = _next_q(own_model, data, [0, 1, 2])  # (3, B, 1)
+    with th.no_grad():
+        features = own_model.critic_target.body_features(
+            data.next_observations, own_model.actor_target(data.next_observations)
+        )
+        # every[i][k]: target critic head i's value of actor head k's target action, (B, 1)
+        every = [own_model.critic_target.heads(features, th.tensor([i, i, i])) for i in range(3)]
+    for _ in range(5):
+        pessimistic = _next_q(min_model, data, [0, 1, 2])
+        assert (pessimistic <= own).all()
+        for k in range(3):  # the minimum with one other critic head, the same for the whole minibatch
+            matches = [i for i in range(3) if i != k and th.allclose(pessimistic[k], th.minimum(own[k], every[i][k]))]
+            assert matches, k
+    one_head = _model(n_heads=1, preset="ddpg", target_q="min_pair")  # nothing to take the minimum with: own
+    one_head.policy.load_state_dict(_model(n_heads=1, preset="ddpg").policy.state_dict())
+    th.testing.assert_close(_next_q(one_head, _batch(1), [0]), _next_q(_model(n_heads=1, preset="ddpg"), _batch(1), [0]))
+
+
+def test_target_policy_smoothing_adds_clipped_noise_to_the_target_actions():
+    data = _batch(3)
+    reference = _model()
+    plain = _next_q(reference, data, [0, 1, 2])
+    clipped_to_zero = _model(target_policy_noise=10.0, target_noise_clip=0.0)
+    clipped_to_zero.policy.load_state_dict(reference.policy.state_dict())
+    th.testing.assert_close(_next_q(clipped_to_zero, data, [0, 1, 2]), plain)
+    smoothed = _model(target_policy_noise=0.2)
+    smoothed.policy.load_state_dict(reference.policy.state_dict())
+    assert not th.allclose(_next_q(smoothed, data, [0, 1, 2]), plain)
 
 
 def test_one_head_is_ddpg():
@@ -159,7 +231,7 @@ def test_one_head_is_ddpg():
     data = _batch(1)
 
     for _ in range(3):
-        model._train_pair(data, pair=0)
+        _step(model, data, pair=0)
         # eqs. 3-4
         with th.no_grad():
             y = data.rewards + 0.9 * (1 - data.dones) * critic_target(
