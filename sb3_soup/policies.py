@@ -102,7 +102,7 @@ class TrainedHeads(NamedTuple):
     per_pair: list[int]  # (H,) the head serving each pair
     # what the network's forward takes: an int for one pair (outputs (B, ...), which broadcast as (1, B, ...)), None for
     # all its heads in order or its only head, else the tensor of per_pair
-    index: HeadIndex
+    head_arg: HeadIndex
     rows: int | th.Tensor | None  # the heads trained, for EnsembleAdam and soft_update: one, a (K,) bool mask, None: all
     n_heads: int  # how many distinct heads: the shared body's gradient is the mean over them
 
@@ -281,18 +281,18 @@ class SOUPPolicy(BasePolicy):
     def _trained_heads(self, pairs: list[int], n_heads: int) -> TrainedHeads:
         per_pair = list(pairs) if n_heads > 1 else [0] * len(pairs)
         distinct = sorted(set(per_pair))
-        index: HeadIndex = None
+        head_arg: HeadIndex = None
         if len(pairs) == 1:
-            index = per_pair[0]  # one pair: the network's plain (B, ...) single-head pass
+            head_arg = per_pair[0]  # one pair: the network's plain (B, ...) single-head pass
         elif n_heads > 1 and per_pair != list(range(n_heads)):
-            index = th.as_tensor(per_pair, device=self.device)
+            head_arg = th.as_tensor(per_pair, device=self.device)
         rows: int | th.Tensor | None = None
         if len(distinct) == 1 and n_heads > 1:
             rows = distinct[0]
         elif len(distinct) < n_heads:
             rows = th.zeros(n_heads, dtype=th.bool, device=self.device)
             rows[distinct] = True
-        return TrainedHeads(per_pair, index, rows, len(distinct))
+        return TrainedHeads(per_pair, head_arg, rows, len(distinct))
 
     def describe_pairs(self, pairs: list[int], per_pair_values: th.Tensor) -> str:
         """

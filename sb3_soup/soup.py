@@ -686,15 +686,15 @@ class SOUP(OffPolicyAlgorithm):
             next_q = self._next_q(data.next_observations, critic_pairs)  # (H, B, 1)
             target_q = td_target(data.rewards, data.dones, self.gamma, next_q)  # eq. 4
         critic_heads = self.policy.critic_heads(critic_pairs)
-        current_q = self.critic(data.observations, data.actions, head=critic_heads.index, grad_scale=critic_heads.scale)
+        current_q = self.critic(data.observations, data.actions, head=critic_heads.head_arg, grad_scale=critic_heads.scale)
         per_pair = critic_loss(current_q, target_q, self._pair_masks(masks, critic_pairs))  # (H,), eq. 3
         critic_value = self._optimize(self.critic, per_pair, critic_heads, critic_pairs, "critic_loss")
         if self._n_updates % self.policy_delay != 0 or not actor_pairs:
             return [critic_value], []
 
         actor_heads, scoring_heads = self.policy.actor_heads(actor_pairs), self.policy.critic_heads(actor_pairs)
-        actions_pi = self.actor(data.observations, head=actor_heads.index, grad_scale=actor_heads.scale)  # (H, B, A)
-        q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.index)  # (H, B, 1)
+        actions_pi = self.actor(data.observations, head=actor_heads.head_arg, grad_scale=actor_heads.scale)  # (H, B, A)
+        q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.head_arg)  # (H, B, 1)
         per_pair = actor_loss(q_pi, self._pair_masks(masks, actor_pairs))  # (H,), eq. 5
         actor_value = self._optimize(self.actor, per_pair, actor_heads, actor_pairs, "actor_loss")
         soft_update(self.actor, self.actor_target, self.tau, actor_heads.rows)  # eq. 6
@@ -736,13 +736,13 @@ class SOUP(OffPolicyAlgorithm):
         :return: ``(H, B, 1)``
         """
         actor_heads, critic_heads = self.policy.actor_heads(pairs), self.policy.critic_heads(pairs)
-        next_actions = self.actor_target(next_observations, head=actor_heads.index)  # (H or 1, B, A)
+        next_actions = self.actor_target(next_observations, head=actor_heads.head_arg)  # (H or 1, B, A)
         if self.target_policy_noise > 0:
             clip = self.target_noise_clip
             noise = (th.randn_like(next_actions) * self.target_policy_noise).clamp(-clip, clip)
             next_actions = (next_actions + noise).clamp(-1.0, 1.0)
         features = self.critic_target.body_features(next_observations, next_actions)  # (H or 1, B, F)
-        next_q = self.critic_target.heads(features, critic_heads.index)  # (H, B, 1)
+        next_q = self.critic_target.heads(features, critic_heads.head_arg)  # (H, B, 1)
         if self.target_q == "min_pair" and self.n_critic_heads > 1:
             own = th.as_tensor(critic_heads.per_pair, device=self.device)  # (H,)
             others = (own + th.randint(1, self.n_critic_heads, own.shape, device=self.device)) % self.n_critic_heads
