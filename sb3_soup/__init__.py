@@ -10,6 +10,7 @@ from sb3_soup.confidence import (
     DecayedConfidence,
     FixedConfidence,
     NoConfidence,
+    UCBConfidence,
 )
 from sb3_soup.policies import MlpPolicy, MultiInputPolicy, SOUPPolicy
 from sb3_soup.presets import PRESETS
@@ -34,5 +35,6 @@ __all__ = [
     "MultiInputPolicy",
     "NoConfidence",
     "SOUPPolicy",
+    "UCBConfidence",
     "__version__",
 ]

@@ -25,7 +25,7 @@ from sb3_soup.validation import check_bool, check_float
 if TYPE_CHECKING:
     from sb3_soup.policies import SOUPPolicy
 
-CONFIDENCE_STRATEGIES = ("none", "fixed", "decayed", "adaptive")
+CONFIDENCE_STRATEGIES = ("none", "fixed", "decayed", "adaptive", "ucb")
 
 
 class ConfidenceRollout(NamedTuple):
@@ -42,6 +42,8 @@ class ConfidenceStrategy(nn.Module, ABC):
     Interface of a confidence strategy.
 
     - :meth:`weights` gives ``W`` (shape ``(B, Kc, Ka)``, or broadcastable to it) for a batch of observations;
+    - :meth:`exploration_weights` gives the ``W`` used while exploring (``learn``, ``predict(deterministic=False)``),
+      by default the same;
     - :meth:`on_step` is called once per vectorised environment step during ``learn``;
     - :meth:`update` is called after each training round with the selections made since the previous one
       when :attr:`needs_rollout` is True, and returns values to log;
@@ -68,6 +70,16 @@ class ConfidenceStrategy(nn.Module, ABC):
         :param q_matrix: ``V`` of shape ``(B, Kc, Ka)``
         :return: ``W`` of shape ``(B, Kc, Ka)`` or broadcastable to it
         """
+
+    def exploration_weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
+        """
+        ``W`` while exploring (``learn``, ``predict(deterministic=False)``); by default :meth:`weights`.
+
+        :param obs: preprocessed observation batch (as given to the policy)
+        :param q_matrix: ``V`` of shape ``(B, Kc, Ka)``
+        :return: ``W`` of shape ``(B, Kc, Ka)`` or broadcastable to it
+        """
+        return self.weights(obs, q_matrix)
 
     def on_step(self, n_env_steps: int) -> None:
         """Called after each vectorised environment step during ``learn`` with the number of env-steps taken."""
@@ -151,6 +163,34 @@ class DecayedConfidence(_PairedStrategy):
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         return _pairwise_weights(th.tensor(self.diagonal, device=q_matrix.device), self.n_critic_heads, self.n_actor_heads)
+
+
+class UCBConfidence(ConfidenceStrategy):
+    """
+    Optimistic selection (SUNRISE's UCB exploration, Lee et al., 2021): while exploring, each candidate is rated
+    ``mean_i V[i, k] + ucb_lambda * std_i V[i, k]``, the mean of the critic heads' values plus a bonus for their
+    disagreement; greedy actions (``predict(deterministic=True)``, evaluations) use the mean alone.
+
+    As E-Critic weights: ``W[i, k] = 1 / Kc + ucb_lambda * (V[i, k] - mean_k) / (Kc * std_k)``, so that
+    ``sum_i W[i, k] V[i, k] = mean_k + ucb_lambda * std_k`` (std over the critic heads, ddof 0).
+
+    :param ucb_lambda: weight of the bonus, >= 0 (0: the mean of the heads)
+    """
+
+    name = "ucb"
+
+    def __init__(self, ucb_lambda: float = 1.0):
+        super().__init__()
+        self.ucb_lambda = check_float("ucb_lambda", ucb_lambda, 0.0, math.inf, False, True, "weight of the UCB bonus")
+
+    def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
+        return th.full((1, self.n_critic_heads, self.n_actor_heads), 1.0 / self.n_critic_heads, device=q_matrix.device)
+
+    def exploration_weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
+        mean = q_matrix.mean(dim=1, keepdim=True)  # (B, 1, Ka)
+        std = q_matrix.std(dim=1, unbiased=False, keepdim=True)  # (B, 1, Ka)
+        bonus = self.ucb_lambda * (q_matrix - mean) / (self.n_critic_heads * std.clamp(min=1e-8))
+        return 1.0 / self.n_critic_heads + bonus  # (B, Kc, Ka)
 
 
 class ConfidenceNetwork(BaseModel):
@@ -256,6 +296,9 @@ class AdaptiveConfidence(ConfidenceStrategy):
         rewards = rollout.rewards.float()
         advantage = rewards - self.reward_baseline if self.baseline else rewards  # (N,)
         loss = -(chosen_log_prob * advantage).mean()
+        with th.no_grad():  # how decided the selection policy is: near 1 saturated, near 1/Ka flat
+            max_prob = log_prob.max(dim=1).values.exp().median()
+            spread = (e_q / self.temperature).std(dim=1, unbiased=False).median()
         assert self.optimizer is not None, "setup() builds the optimizer"
         self.optimizer.zero_grad()
         loss.backward()
@@ -268,7 +311,12 @@ class AdaptiveConfidence(ConfidenceStrategy):
                 else:
                     self.reward_baseline.copy_(mean_reward)
                     self.baseline_ready.fill_(True)
-        return {"confidence_loss": loss.item(), "confidence_baseline": float(self.reward_baseline)}
+        return {
+            "confidence_loss": loss.item(),
+            "confidence_baseline": float(self.reward_baseline),
+            "selection_max_prob": float(max_prob),
+            "selection_logit_spread": float(spread),
+        }
 
 
 def check_strategy(confidence: Any) -> None:
@@ -331,6 +379,8 @@ def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> Co
         return FixedConfidence(alpha=kwargs.get("alpha", 0.5))
     if name == "decayed":
         return DecayedConfidence(decay=kwargs.get("decay", 0.9995))
+    if name == "ucb":
+        return UCBConfidence(ucb_lambda=kwargs.get("ucb_lambda", 1.0))
     return AdaptiveConfidence(
         lr=kwargs.get("lr", 1e-4), temperature=kwargs.get("temperature", 1.0), baseline=kwargs.get("baseline", True)
     )

@@ -305,17 +305,21 @@ class SOUPPolicy(BasePolicy):
         actor, critic = self.actor_heads(bad).per_pair, self.critic_heads(bad).per_pair
         return f"head pair(s) {bad} (actor head(s) {actor}, critic head(s) {critic})"
 
-    def select(self, obs: PyTorchObs) -> Selection:
+    def select(self, obs: PyTorchObs, explore: bool = False) -> Selection:
         """
         Ensemble action selection (eq. 7), batched over observations, without noise.
         Every actor head proposes a candidate, every critic head scores every candidate (``V``),
         the confidence strategy weights the scores (``W``), and the best E-Q value wins.
+
+        :param explore: weight with the strategy's ``exploration_weights`` (acting during ``learn``) instead of its
+            ``weights`` (greedy actions)
         """
         candidates = self.actor(obs)  # (Ka, B, A)
         if self.n_actor_heads == 1 and self.n_critic_heads == 1:
             return Selection(candidates[0], th.zeros(candidates.shape[1], dtype=th.long, device=candidates.device), None, None)
         q_matrix = self.critic.q_matrix(obs, candidates)  # (B, Kc, Ka)
-        weights = self.confidence.weights(obs, q_matrix)  # broadcastable to (B, Kc, Ka)
+        strategy = self.confidence
+        weights = (strategy.exploration_weights if explore else strategy.weights)(obs, q_matrix)  # broadcastable to V
         check_weights(self.confidence, weights, q_matrix)
         actions, chosen = e_actor(candidates, e_critic(q_matrix, weights))
         return Selection(actions, chosen, q_matrix, weights)
@@ -324,7 +328,7 @@ class SOUPPolicy(BasePolicy):
         return self._predict(observation, deterministic=deterministic)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        actions = self.select(observation).actions  # (B, A) in [-1, 1]
+        actions = self.select(observation, explore=not deterministic).actions  # (B, A) in [-1, 1]
         if not deterministic and self.exploration_std > 0:
             actions = (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
         return actions

@@ -156,6 +156,7 @@ _ARGUMENT_CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "temperature": _float_check(0.0, math.inf, True, True, "softmax temperature of the selection"),
     "confidence_lr": _float_check(0.0, math.inf, True, True, "confidence network learning rate"),
     "confidence_baseline": _bool_check("running-mean reward baseline in REINFORCE"),
+    "ucb_lambda": _float_check(0.0, math.inf, False, True, "weight of the UCB bonus"),
     "mask_prob": _float_check(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off"),
     "train_heads": lambda name, value: check_choice(name, value, TRAIN_HEADS, "which head pairs each gradient step trains"),
     "target_q": lambda name, value: check_choice(name, value, TARGET_Q, "which target critic heads each head bootstraps from"),
@@ -183,6 +184,7 @@ _STRUCTURAL_ARGUMENTS = (
     "temperature",
     "confidence_lr",
     "confidence_baseline",
+    "ucb_lambda",
     "policy",
 )
 
@@ -224,12 +226,14 @@ class SOUP(OffPolicyAlgorithm):
     :param preset: one of the paper's models: "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup"
         (sets head counts and confidence; see :data:`sb3_soup.PRESETS`)
     :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive"
-        (default, or the preset's) or a :class:`sb3_soup.ConfidenceStrategy` instance
+        (default, or the preset's), "ucb" (optimistic selection) or a :class:`sb3_soup.ConfidenceStrategy` instance
     :param alpha: fixed confidence of a critic head in its own candidate (``confidence="fixed"``), in (0, 1)
     :param decay: per-step decay of the confidence (``confidence="decayed"``), in (0, 1]
     :param temperature: softmax temperature of the selection policy trained by REINFORCE (``"adaptive"``), > 0
     :param confidence_lr: learning rate of the confidence network (``"adaptive"``)
     :param confidence_baseline: subtract a running-mean reward baseline in REINFORCE (False: the paper's raw reward)
+    :param ucb_lambda: weight of the disagreement bonus of the optimistic selection (``confidence="ucb"``): while
+        exploring, candidates are rated ``mean + ucb_lambda * std`` over the critic heads (SUNRISE)
     :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off
         (default 0.5, 1.0 for the "ddpg" preset)
     :param train_heads: "active": train the episode's active head pair (the paper); "all": every head pair
@@ -296,6 +300,7 @@ class SOUP(OffPolicyAlgorithm):
         temperature: float = 1.0,
         confidence_lr: float = 1e-4,
         confidence_baseline: bool = True,
+        ucb_lambda: float = 1.0,
         mask_prob: float | None = None,
         train_heads: str = "active",
         target_q: str = "own",
@@ -333,6 +338,7 @@ class SOUP(OffPolicyAlgorithm):
             temperature=temperature,
             confidence_lr=confidence_lr,
             confidence_baseline=confidence_baseline,
+            ucb_lambda=ucb_lambda,
             train_heads=train_heads,
             target_q=target_q,
             policy_delay=policy_delay,
@@ -385,6 +391,7 @@ class SOUP(OffPolicyAlgorithm):
         self.temperature: float = args["temperature"]
         self.confidence_lr: float = args["confidence_lr"]
         self.confidence_baseline: bool = args["confidence_baseline"]
+        self.ucb_lambda: float = args["ucb_lambda"]
         self.train_heads: str = args["train_heads"]
         self.target_q: str = args["target_q"]
         self.policy_delay: int = args["policy_delay"]
@@ -409,6 +416,7 @@ class SOUP(OffPolicyAlgorithm):
                 lr=self.confidence_lr,
                 temperature=self.temperature,
                 baseline=self.confidence_baseline,
+                ucb_lambda=self.ucb_lambda,
             ),
         )
         # Per env: the head pair trained during its current episode (drawn at each episode start)
@@ -582,7 +590,7 @@ class SOUP(OffPolicyAlgorithm):
         assert self._last_obs is not None, "self._last_obs was not set"
         obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
         with th.no_grad():
-            selection = self.policy.select(obs_tensor)
+            selection = self.policy.select(obs_tensor, explore=True)
         self._record_selection(obs_tensor, selection)
         scaled_action = selection.actions.cpu().numpy()  # (n_envs, A) in [-1, 1]
         if action_noise is not None:

@@ -101,3 +101,40 @@ def test_custom_strategy_with_a_wrong_shape_is_refused():
     model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence=WrongShape())
     with pytest.raises(ValueError, match=r"WrongShape.weights returned shape \(5, 7\)"):
         model.predict(np.zeros(3, dtype=np.float32))
+
+
+def test_ucb_rates_candidates_by_mean_plus_lambda_std_while_exploring_and_by_the_mean_otherwise():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence="ucb", ucb_lambda=2.0, seed=0)
+    strategy = model.policy.confidence
+    q_matrix = th.as_tensor(np.random.default_rng(0).normal(size=(8, 3, 3)), dtype=th.float32)  # (B, Kc, Ka)
+    obs = th.zeros(8, 3)
+    optimistic = (strategy.exploration_weights(obs, q_matrix) * q_matrix).sum(dim=1)
+    mean, std = q_matrix.mean(dim=1), q_matrix.std(dim=1, unbiased=False)
+    th.testing.assert_close(optimistic, mean + 2.0 * std)
+    th.testing.assert_close((strategy.weights(obs, q_matrix) * q_matrix).sum(dim=1), mean)
+
+
+def test_ucb_explores_towards_the_disputed_candidate_and_acts_greedily_on_the_mean():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, confidence="ucb", ucb_lambda=10.0, seed=0)
+    # candidate 0: both heads agree on 1.0; candidate 1: mean 0.5, spread 1.0
+    q_matrix = th.tensor([[[1.0, 1.5], [1.0, -0.5]]])
+    obs = th.zeros(1, 3)
+    greedy = (model.policy.confidence.weights(obs, q_matrix) * q_matrix).sum(dim=1).argmax(dim=1)
+    exploring = (model.policy.confidence.exploration_weights(obs, q_matrix) * q_matrix).sum(dim=1).argmax(dim=1)
+    assert greedy.item() == 0 and exploring.item() == 1
+    model.learn(30)  # acts with it, saves and loads with the model
+    assert model.policy.select(th.zeros(4, 3), explore=True).actions.shape == (4, 1)
+
+
+def test_adaptive_confidence_logs_how_decided_its_selection_policy_is():
+    strategy = _strategy(n_heads=3)
+    rng = np.random.default_rng(0)
+    rollout = ConfidenceRollout(
+        th.as_tensor(rng.normal(size=(32, 3)), dtype=th.float32),
+        th.as_tensor(rng.normal(size=(32, 3, 3)), dtype=th.float32),
+        th.as_tensor(rng.integers(0, 3, size=32)),
+        th.as_tensor(rng.normal(size=32), dtype=th.float32),
+    )
+    logs = strategy.update(rollout)
+    assert 1 / 3 <= logs["selection_max_prob"] <= 1.0
+    assert logs["selection_logit_spread"] > 0

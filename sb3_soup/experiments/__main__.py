@@ -43,6 +43,11 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--suite", default="models", choices=sorted(SUITES), help="which comparison (default: models)")
     run.add_argument("--models", type=_csv, help=f"narrow the suite to these, comma-separated (known: {', '.join(VARIANTS)})")
     run.add_argument("--heads", type=_ints, help="head counts K, comma-separated (default: the suite's)")
+    run.add_argument(
+        "--name",
+        help="store the runs as this model (folder and column title), e.g. for ablations: several --hyperparams settings "
+        "of one model side by side in one --out folder (needs exactly one of --models)",
+    )
     run.add_argument("--seeds", type=parse_seeds, default=[0, 1, 2], help="a count (3 -> 0,1,2) or a list (1,5)")
     run.add_argument("--timesteps", type=int, help="steps per run (default: n_timesteps from soup.yml, else 100000)")
     run.add_argument("--out", required=True, help="experiment folder")
@@ -140,6 +145,7 @@ def run_command(args: argparse.Namespace) -> int:
         stop_after=args.stop_after,
         eval_freq=args.eval_freq,
         eval_episodes=args.eval_episodes,
+        name=args.name,
     )
     held = _held_by_legacy_runner(args.out, specs)
     write_grid(args.out, specs, args.suite, args.heads)

@@ -6,6 +6,7 @@ import ast
 import dataclasses
 import json
 import os
+import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -309,6 +310,7 @@ def build_grid(
     stop_after: int | None = None,
     eval_freq: int = 10_000,
     eval_episodes: int = 10,
+    name: str | None = None,
 ) -> list[RunSpec]:
     """
     Expand a suite into its runs.
@@ -332,6 +334,9 @@ def build_grid(
     :param stop_after: see :class:`RunSpec`
     :param eval_freq: see :class:`RunSpec`
     :param eval_episodes: see :class:`RunSpec`
+    :param name: store the runs as this model (its folder name and column title) instead of the variant's id: for
+        ablations, several settings of one variant (``--hyperparams``) side by side in one folder; needs exactly one
+        model and one K
     :return: the runs, in table order (model, then seed)
     """
     if suite not in SUITES:
@@ -341,6 +346,10 @@ def build_grid(
     if unknown:
         raise ValueError(f"Unknown model(s) {unknown}; choose from {sorted(VARIANTS)}")
     head_counts = list(heads) if heads else list(SUITES[suite].heads)
+    if name is not None and (len(names) != 1 or (VARIANTS[names[0]].uses_heads and len(head_counts) != 1)):
+        raise ValueError(f"a name ({name!r}) stands for one model: give exactly one of --models and at most one of --heads")
+    if name is not None and not re.fullmatch(r"[A-Za-z0-9_.+-]+", name):
+        raise ValueError(f"a name is a folder name: letters, digits and _ . + - only, got {name!r}")
     overrides = overrides or {}
     base = {**soup_defaults(), **load_hyperparams(env_id, hyperparams_file)}
     if timesteps is None:
@@ -350,7 +359,8 @@ def build_grid(
         variant = VARIANTS[name]
         for n_heads in head_counts if variant.uses_heads else [None]:
             stored, params = _stored_variant(variant, env_id, n_heads, base, overrides)
-            model = _model_id(stored.name, n_heads)
+            model = name or _model_id(stored.name, n_heads)
+            label = name or _format(stored.label, n_heads)
             for seed in seeds:
                 specs.append(
                     RunSpec(
@@ -358,7 +368,7 @@ def build_grid(
                         model=model,
                         variant=stored.name,
                         algo=stored.algo,
-                        label=_format(stored.label, n_heads),
+                        label=label,
                         n_heads=n_heads,
                         seed=int(seed),
                         timesteps=int(timesteps),
