@@ -634,3 +634,16 @@ def test_ray_backend_on_a_local_instance(tmp_path, capsys):
     assert data["not_included"] == ["Pendulum-v1:sb3_ddpg/seed_0"] and list(data["metrics"]["Pendulum-v1"]) == ["td3"]
     assert main(command) == 1  # again: the finished run is skipped without a task, the failing one fails again
     assert "1 skipped" in capsys.readouterr().out
+
+
+def test_a_name_stores_one_variants_runs_under_it(tmp_path):
+    specs = build_grid(
+        "Pendulum-v1", tmp_path, models=["soup"], seeds=[0, 1], name="all-heads", overrides={"*": {"train_heads": "all"}}
+    )
+    assert {spec.model for spec in specs} == {"all-heads"} and {spec.label for spec in specs} == {"all-heads"}
+    assert [spec.run_dir for spec in specs] == [str(tmp_path / "all-heads" / f"seed_{seed}") for seed in (0, 1)]
+    assert all(spec.variant == "soup" and spec.hyperparams["train_heads"] == "all" for spec in specs)
+    with pytest.raises(ValueError, match="stands for one model"):
+        build_grid("Pendulum-v1", tmp_path, models=["soup", "dbddpg"], name="both")
+    with pytest.raises(ValueError, match="folder name"):
+        build_grid("Pendulum-v1", tmp_path, models=["soup"], name="a/b")

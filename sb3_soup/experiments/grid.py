@@ -342,7 +342,7 @@ def build_grid(
     if suite not in SUITES:
         raise ValueError(f"Unknown suite {suite!r}; choose from {sorted(SUITES)}")
     names = list(models) if models else list(SUITES[suite].variants)
-    unknown = [name for name in names if name not in VARIANTS]
+    unknown = [variant_name for variant_name in names if variant_name not in VARIANTS]
     if unknown:
         raise ValueError(f"Unknown model(s) {unknown}; choose from {sorted(VARIANTS)}")
     head_counts = list(heads) if heads else list(SUITES[suite].heads)
@@ -355,8 +355,8 @@ def build_grid(
     if timesteps is None:
         timesteps = int(_zoo_timesteps(env_id, hyperparams_file) or 100_000)
     specs = []
-    for name in names:
-        variant = VARIANTS[name]
+    for variant_name in names:
+        variant = VARIANTS[variant_name]
         for n_heads in head_counts if variant.uses_heads else [None]:
             stored, params = _stored_variant(variant, env_id, n_heads, base, overrides)
             model = name or _model_id(stored.name, n_heads)
