@@ -93,6 +93,18 @@ def make_parser() -> argparse.ArgumentParser:
         "--x", dest="x_axis", default="both", choices=["episodes", "timesteps", "both"], help="curves' x-axis (default: both)"
     )
     report.add_argument("--to", dest="report_dir", help="write the report files here (default: OUT, or OUT/report-SUITE)")
+    report.add_argument("--eval-step", type=int, help="evaluation step of evaluation.md (default: the last one every run has)")
+    report.add_argument(
+        "--reps", type=int, default=10_000, help="bootstrap resamples of evaluation.md's intervals (default: 10000)"
+    )
+    report.add_argument(
+        "--with",
+        dest="extra",
+        action="append",
+        default=[],
+        metavar="FOLDER",
+        help="another experiment folder whose runs join the report (e.g. baselines trained longer, with --eval-step)",
+    )
 
     trap = commands.add_parser(
         "trap", help="steps each finished run spent in a short-fall trap, and its final actions' saturation"
@@ -227,8 +239,13 @@ def report_command(args: argparse.Namespace) -> int:
         suite=args.suite,
         partial=args.partial,
         report_dir=args.report_dir,
+        eval_step=args.eval_step,
+        extra=args.extra,
+        bootstrap_reps=args.reps,
     )
     print((Path(data["report_dir"]) / "table.md").read_text())
+    if "evaluation.md" in data["files"]:
+        print((Path(data["report_dir"]) / "evaluation.md").read_text())
     print("Wrote " + ", ".join(data["files"]) + f" in {data['report_dir']}")
     return 0
 

@@ -164,3 +164,27 @@ def plot_confidence(
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_evaluations(
+    curves: Mapping[str, Sequence[tuple[str, Sequence[int], Sequence[tuple[float, float, float]]]]], path: str | os.PathLike
+) -> None:
+    """
+    Deterministic evaluation return over training: the IQM over runs with its 95% confidence band, one panel per env.
+
+    :param curves: env -> [(label, steps, [(iqm, low, high) per step])]
+    :param path: the PNG file
+    """
+    fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 4.2), squeeze=False)
+    for ax, (env_id, env_curves) in zip(axes[0], curves.items(), strict=True):
+        for label, steps, estimates in env_curves:
+            values = np.asarray(estimates, dtype=float).reshape(-1, 3)
+            ax.plot(steps, values[:, 0], label=label)
+            ax.fill_between(steps, values[:, 1], values[:, 2], alpha=0.2)
+        ax.set_title(f"{env_id}: evaluation return (IQM, 95% CI)")
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("return")
+        ax.legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,6 +1,8 @@
 """
 ``report``: read an experiment folder, compute Table 1's metrics, write ``table.md``, ``metrics.json``,
-``curves.png`` and (for runs with self-adaptive confidence) ``confidence.png``.
+``curves.png`` and (for runs with self-adaptive confidence) ``confidence.png``; from the runs' deterministic
+evaluations, the statistics peers publish (rliable's IQM, 95% intervals, probability of improvement) in
+``evaluation.md`` and ``evaluation.png`` (see :mod:`sb3_soup.experiments.evaluation`).
 
 A folder may hold several suites' runs (they share the runs they have in common, see
 :attr:`~sb3_soup.experiments.grid.Variant.same_as`): ``suite`` narrows the report to one suite's columns, with that
@@ -25,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from sb3_soup.experiments import logs
+from sb3_soup.experiments import evaluation, logs
 from sb3_soup.experiments.grid import SUITES, RunSpec, suite_columns
 from sb3_soup.experiments.metrics import DEFAULT_WINDOW, ModelMetrics, add_speed_ups, model_metrics, paper_thresholds
-from sb3_soup.experiments.plots import Curve, plot_confidence, plot_curves
+from sb3_soup.experiments.plots import Curve, plot_confidence, plot_curves, plot_evaluations
 from sb3_soup.experiments.runner import (
     DONE_FILE,
     ERROR_FILE,
@@ -397,6 +399,77 @@ def _compute(
     return results
 
 
+def evaluation_report(
+    columns: Sequence[Column], baseline: str | None, step: int | None, partial: bool, reps: int = evaluation.DEFAULT_REPS
+) -> tuple[str, dict[str, Any], dict[str, Any]]:
+    """
+    The deterministic evaluations' statistics: per env and model, the IQM of the runs' evaluation returns at ``step``
+    with its 95% stratified-bootstrap interval, mean ± std, and the probability of improvement over ``baseline``.
+
+    :param columns: the models (and the baseline's column, if it is not one of them)
+    :param baseline: the baseline's model id (``None``: no probability of improvement)
+    :param step: the evaluation step (default: per env, the last one every used run has)
+    :param partial: also use unfinished runs that have an evaluation at the step
+    :param reps: bootstrap resamples of the intervals (the curves' use a fifth)
+    :return: Markdown (empty when no run has evaluations), JSON data, and the curves to plot
+    """
+    rows: dict[str, list[tuple[Column, list[RunRecord], list[tuple[np.ndarray, np.ndarray]]]]] = {}
+    for column in columns:
+        for env_id in dict.fromkeys(record.spec.env_id for record in column.records):
+            used = [r for r in _used_records(column, partial) if r.spec.env_id == env_id]
+            found = [(record, evaluation.read_run(record.spec.run_dir)) for record in used]
+            found = [(record, run) for record, run in found if len(run[0])]
+            if found:
+                rows.setdefault(env_id, []).append((column, [record for record, _ in found], [run for _, run in found]))
+    if not rows:
+        return "", {}, {}
+    lines = [
+        "| Env. | Model | Step | Runs | IQM [95% CI] | Mean ± std | P(improvement) [95% CI] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    data: dict[str, Any] = {}
+    curves: dict[str, Any] = {}
+    for env_id, env_rows in rows.items():
+        at = step if step is not None else min(max(evaluation.common_steps(runs)) for _, _, runs in env_rows)
+        env_rows = [(column, records, runs) for column, records, runs in env_rows if at in evaluation.common_steps(runs)]
+        scores = {column.model: evaluation.run_scores(runs, at) for column, _, runs in env_rows}
+        reference = scores.get(baseline) if baseline is not None else None
+        data[env_id] = {"step": at, "baseline": baseline if reference is not None else None, "models": {}}
+        curves[env_id] = []
+        for index, (column, records, runs) in enumerate(env_rows):
+            values = scores[column.model]
+            estimate = evaluation.iqm(values, reps=reps)
+            improvement = None
+            if reference is not None and column.model != baseline:
+                improvement = evaluation.probability_of_improvement(values, reference, reps=reps)
+            data[env_id]["models"][column.model] = {
+                "label": column.label,
+                "seeds": [record.spec.seed for record in records],
+                "scores": values.tolist(),
+                "iqm": dataclasses.asdict(estimate),
+                "mean": float(values.mean()),
+                "std": float(values.std(ddof=0)),
+                "probability_of_improvement": None if improvement is None else dataclasses.asdict(improvement),
+            }
+            cell = "(baseline)" if column.model == baseline else (improvement.format(2) if improvement else "-")
+            lines.append(
+                f"| {env_id if index == 0 else ''} | {column.label} | {at} | {len(values)} | {estimate.format()} | "
+                f"{values.mean():.0f} ± {values.std(ddof=0):.0f} | {cell} |"
+            )
+            steps = [s for s in evaluation.common_steps(runs) if s <= at]
+            curve = evaluation.iqm_curve(runs, steps, reps=max(1, reps // 5))
+            curves[env_id].append((column.label, steps, [(e.value, e.low, e.high) for e in curve]))
+    lines += [
+        "",
+        "- A run's score: the mean return of its deterministic evaluation episodes at the step (SB3's EvalCallback). "
+        "IQM: interquartile mean over runs; [95% CI]: stratified bootstrap (rliable); Mean ± std: over runs (ddof=0).",
+        f"- P(improvement): probability that a run of the model scores higher than a run of `{baseline}` (rliable)."
+        if baseline is not None
+        else "- No P(improvement): no baseline (`report --baseline MODEL`).",
+    ]
+    return "\n".join(lines) + "\n", data, curves
+
+
 def make_report(
     out: str | os.PathLike,
     thresholds: dict[str, tuple[float | None, float | None]] | None = None,
@@ -406,6 +479,9 @@ def make_report(
     suite: str | None = None,
     partial: bool = False,
     report_dir: str | os.PathLike | None = None,
+    eval_step: int | None = None,
+    extra: Sequence[str | os.PathLike] = (),
+    bootstrap_reps: int = evaluation.DEFAULT_REPS,
 ) -> dict[str, Any]:
     """
     Compute the metrics of an experiment folder's runs and write the report files.
@@ -419,12 +495,25 @@ def make_report(
     :param suite: report only this suite's models, with its column titles (default: every model in the folder)
     :param partial: also use the episodes of unfinished runs (marked as partial); default: finished runs only
     :param report_dir: where to write (default: ``out``, or ``out/report-<suite>`` with a suite)
+    :param eval_step: the evaluation step of ``evaluation.md`` (default: the last one every run has)
+    :param extra: more experiment folders whose runs join the report (e.g. baselines trained for longer, read at
+        ``eval_step``); a run (env, model, seed) may be in one folder only
+    :param bootstrap_reps: bootstrap resamples of ``evaluation.md``'s intervals
     :return: the data written to ``metrics.json``
     """
     out = Path(out)
     if suite is not None and suite not in SUITES:
         raise ValueError(f"Unknown suite {suite!r}; choose from {sorted(SUITES)}")
     records = collect_runs(out)
+    for folder in extra:
+        more = collect_runs(folder)
+        if not more:
+            raise FileNotFoundError(f"No runs found in {folder}")
+        taken = {(record.spec.env_id, record.spec.key) for record in records}
+        clash = sorted(key for record in more if (key := (record.spec.env_id, record.spec.key)) in taken)
+        if clash:
+            raise ValueError(f"{folder} and the other folders both hold the runs {clash[:3]}: report them separately")
+        records += more
     if not records:
         raise FileNotFoundError(f"No runs found in {out} (expected {GRID_FILE} or */seed_*/{SPEC_FILE})")
     columns = select_columns(records, suite, recorded_heads(out))
@@ -461,6 +550,14 @@ def make_report(
     if confidence:
         plot_confidence(confidence, target / "confidence.png")
         files.append("confidence.png")
+    evaluation_table, evaluation_data, evaluation_curves = evaluation_report(
+        [*columns, *baseline_columns], baseline_model, eval_step, partial, bootstrap_reps
+    )
+    if evaluation_table:
+        title = f"Suite: **{suite}** (from `{out}`)\n\n" if suite else ""
+        (target / "evaluation.md").write_text(title + evaluation_table)
+        plot_evaluations(evaluation_curves, target / "evaluation.png")
+        files += ["evaluation.md", "evaluation.png"]
     data = {
         "suite": suite,
         "thresholds": {env_id: {"episode": pair[0], "speed_up": pair[1]} for env_id, pair in resolved.items()},
@@ -487,6 +584,7 @@ def make_report(
             for record in accounted
         ],
         "not_included": [_record_id(record) for record in accounted if _record_id(record) not in results.used],
+        "evaluation": evaluation_data,
         "files": files,
         "report_dir": str(target),
     }

@@ -1,0 +1,131 @@
+"""
+Statistics of the deterministic evaluations (``evaluations.csv``) as peers publish them, computed by rliable
+(Agarwal et al., 2021): per model, the interquartile mean (IQM) of the runs' evaluation returns at a step with its 95%
+stratified-bootstrap confidence interval, and the probability of improvement over a baseline with its interval.
+
+A run's score at a step is the mean return of its evaluation episodes at that step (SB3's ``EvalCallback``'s
+``mean_reward``). Scores are not normalised: each env is reported on its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+# Bootstrap resamples: rliable's examples use 50,000; 10,000 give intervals stable to about 1% in a few seconds.
+DEFAULT_REPS = 10_000
+CONFIDENCE = 0.95
+
+
+@dataclasses.dataclass
+class Estimate:
+    """A point estimate with its 95% stratified-bootstrap confidence interval."""
+
+    value: float
+    low: float
+    high: float
+
+    def format(self, digits: int = 0) -> str:
+        """:return: ``value [low, high]``"""
+        return f"{self.value:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+
+def _rliable():  # type: ignore[no-untyped-def]
+    """rliable's ``library`` and ``metrics``, or a clear error when the ``experiments`` extra is not installed."""
+    try:
+        from rliable import library, metrics
+    except ImportError as error:
+        raise ImportError(f"the evaluation statistics need rliable ({error}): pip install 'sb3-soup[experiments]'") from error
+    return library, metrics
+
+
+def run_scores(evaluations: Sequence[tuple[np.ndarray, np.ndarray]], step: int) -> np.ndarray:
+    """
+    :param evaluations: per run, its ``(steps, mean returns)`` arrays
+    :param step: the evaluation step
+    :return: ``(n_runs,)`` the runs' mean evaluation return at ``step``
+    :raises ValueError: when a run was not evaluated at ``step``
+    """
+    scores = []
+    for steps, returns in evaluations:
+        where = np.flatnonzero(np.asarray(steps) == step)
+        if where.size == 0:
+            raise ValueError(f"a run has no evaluation at step {step} (its steps: {list(steps)})")
+        scores.append(float(returns[where[0]]))
+    return np.asarray(scores)
+
+
+def iqm(scores: np.ndarray, reps: int = DEFAULT_REPS, seed: int = 0) -> Estimate:
+    """
+    :param scores: ``(n_runs,)``
+    :param reps: bootstrap resamples
+    :param seed: the bootstrap's seed (reports are reproducible)
+    :return: the interquartile mean with its 95% stratified-bootstrap interval
+    """
+    rly, metrics = _rliable()
+    np.random.seed(seed)  # rliable's bootstrap draws from NumPy's global generator
+    points, intervals = rly.get_interval_estimates(
+        {"x": np.asarray(scores, dtype=float).reshape(-1, 1)},
+        lambda matrix: np.array([metrics.aggregate_iqm(matrix)]),
+        reps=reps,
+        confidence_interval_size=CONFIDENCE,
+    )
+    return Estimate(float(points["x"][0]), float(intervals["x"][0, 0]), float(intervals["x"][1, 0]))
+
+
+def probability_of_improvement(scores: np.ndarray, baseline: np.ndarray, reps: int = DEFAULT_REPS, seed: int = 0) -> Estimate:
+    """
+    :param scores: ``(n_runs,)`` of the model
+    :param baseline: ``(m_runs,)`` of the baseline
+    :param reps: bootstrap resamples
+    :param seed: the bootstrap's seed
+    :return: P(a run of the model scores higher than a run of the baseline), ties counting half, with its 95%
+        stratified-bootstrap interval
+    """
+    rly, metrics = _rliable()
+    np.random.seed(seed)
+    pair = (np.asarray(scores, dtype=float).reshape(-1, 1), np.asarray(baseline, dtype=float).reshape(-1, 1))
+    points, intervals = rly.get_interval_estimates(
+        {"x,y": pair}, metrics.probability_of_improvement, reps=reps, confidence_interval_size=CONFIDENCE
+    )
+    low, high = np.asarray(intervals["x,y"], dtype=float).ravel()
+    return Estimate(float(points["x,y"]), float(low), float(high))
+
+
+def iqm_curve(
+    evaluations: Sequence[tuple[np.ndarray, np.ndarray]], steps: Sequence[int], reps: int = 2_000, seed: int = 0
+) -> list[Estimate]:
+    """
+    :param evaluations: per run, its ``(steps, mean returns)``
+    :param steps: the evaluation steps every run has
+    :param reps: bootstrap resamples per step
+    :param seed: the bootstrap's seed
+    :return: the IQM with its interval at each step
+    """
+    return [iqm(run_scores(evaluations, step), reps=reps, seed=seed) for step in steps]
+
+
+def common_steps(evaluations: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[int]:
+    """:return: the evaluation steps that every run has, in order"""
+    if not evaluations:
+        return []
+    common = set(np.asarray(evaluations[0][0]).tolist())
+    for steps, _ in evaluations[1:]:
+        common &= set(np.asarray(steps).tolist())
+    return sorted(int(step) for step in common)
+
+
+def read_run(run_dir: str) -> tuple[np.ndarray, np.ndarray]:
+    """
+    :param run_dir: a run's folder
+    :return: its evaluation steps and the mean return of the episodes of each (empty arrays when it has none)
+    """
+    from sb3_soup.experiments import logs
+
+    frame = logs.read_evaluations(run_dir)
+    if not len(frame):
+        return np.zeros(0, dtype=int), np.zeros(0)
+    means = frame.groupby("step")["return"].mean()
+    return means.index.to_numpy(dtype=int), means.to_numpy(dtype=float)
