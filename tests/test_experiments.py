@@ -595,8 +595,12 @@ def test_confidence_suite_into_the_models_folder_trains_only_what_is_new(tmp_pat
 
 
 @pytest.mark.slow
-def test_ctrl_c_checkpoints_and_resumes(tmp_path):
-    """A real SIGINT to the CLI (and its workers): the runs stop at a step, checkpoint, and resume to the end."""
+@pytest.mark.parametrize("how", ["ctrl-c", "kill"])
+def test_ctrl_c_checkpoints_and_resumes(tmp_path, how):
+    """
+    A real SIGINT to the CLI and its workers (Ctrl-C in a terminal), or a SIGTERM to the CLI alone (`kill PID`, e.g. a
+    command run in the background, which ignores SIGINT): the runs stop at a step, checkpoint, and resume to the end.
+    """
     out = tmp_path / "runs"
     command = [sys.executable, "-m", "sb3_soup.experiments", "run", "--env", "Pendulum-v1", "--models", "td3",
                "--seeds", "1", "--timesteps", "3000", "--out", str(out), "--workers", "1", "--checkpoint-freq", "0",
@@ -607,7 +611,10 @@ def test_ctrl_c_checkpoints_and_resumes(tmp_path):
     deadline = time.time() + 120
     while time.time() < deadline and not (status_file.is_file() and json.loads(status_file.read_text())["step"] > 200):
         time.sleep(0.2)
-    os.killpg(process.pid, signal.SIGINT)  # like Ctrl-C in a terminal: the CLI and its worker
+    if how == "ctrl-c":
+        os.killpg(process.pid, signal.SIGINT)  # like Ctrl-C in a terminal: the CLI and its worker
+    else:
+        process.terminate()  # the CLI alone
     output = process.communicate(timeout=120)[0].decode()
     assert process.returncode == 2, output
     latest = checkpointing.latest_checkpoint(out / "td3" / "seed_0")

@@ -117,6 +117,10 @@ class _Worker:
     connection: Any
 
 
+def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
     """
     Run the grid in worker processes, one per run, at most ``workers`` at a time.
@@ -136,6 +140,8 @@ def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool =
     queue = list(todo)
     running: list[_Worker] = []
     interrupted = False
+    # SIGTERM (`kill PID`, and what stops a command run in the background, where SIGINT is ignored) stops as Ctrl-C does
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     try:
         while queue or running:
             try:
@@ -168,6 +174,7 @@ def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool =
                 board.finish(worker.spec.key, results[worker.spec.key])
             board.poll()
     finally:
+        signal.signal(signal.SIGTERM, previous)
         for worker in running:  # only after a second Ctrl-C or an error here: do not leave orphans behind
             worker.process.terminate()
             worker.process.join(10)
