@@ -20,6 +20,7 @@ import multiprocessing.connection
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -141,7 +142,8 @@ def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool =
     running: list[_Worker] = []
     interrupted = False
     # SIGTERM (`kill PID`, and what stops a command run in the background, where SIGINT is ignored) stops as Ctrl-C does
-    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    in_main_thread = threading.current_thread() is threading.main_thread()  # where Python lets a handler be set
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main_thread else None
     try:
         while queue or running:
             try:
@@ -174,7 +176,8 @@ def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool =
                 board.finish(worker.spec.key, results[worker.spec.key])
             board.poll()
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
         for worker in running:  # only after a second Ctrl-C or an error here: do not leave orphans behind
             worker.process.terminate()
             worker.process.join(10)
