@@ -5,7 +5,7 @@ import os
 from sb3_soup.buffers import BootstrappedDictReplayBuffer, BootstrappedReplayBuffer
 from sb3_soup.confidence import (
     AdaptiveConfidence,
-    ConfidenceRollout,
+    ConfidenceStep,
     ConfidenceStrategy,
     DecayedConfidence,
     FixedConfidence,
@@ -13,7 +13,7 @@ from sb3_soup.confidence import (
     UCBConfidence,
 )
 from sb3_soup.policies import MlpPolicy, MultiInputPolicy, SOUPPolicy
-from sb3_soup.presets import PRESETS
+from sb3_soup.presets import PRESETS, paper_settings
 from sb3_soup.soup import SOUP
 
 # Read version from file
@@ -27,7 +27,7 @@ __all__ = [
     "AdaptiveConfidence",
     "BootstrappedDictReplayBuffer",
     "BootstrappedReplayBuffer",
-    "ConfidenceRollout",
+    "ConfidenceStep",
     "ConfidenceStrategy",
     "DecayedConfidence",
     "FixedConfidence",
@@ -37,4 +37,5 @@ __all__ = [
     "SOUPPolicy",
     "UCBConfidence",
     "__version__",
+    "paper_settings",
 ]

@@ -12,7 +12,7 @@ from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.type_aliases import TensorDict
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_soup.validation import check_float, check_int
+from sb3_soup.validation import check
 
 
 class BootstrappedReplayBufferSamples(NamedTuple):
@@ -35,16 +35,6 @@ class BootstrappedDictReplayBufferSamples(NamedTuple):
     discounts: th.Tensor | None = None
 
 
-def check_mask_args(n_masks: int, mask_prob: float) -> None:
-    """
-    :param n_masks: number of masks per transition (number of head pairs), an integer >= 1
-    :param mask_prob: probability that a head sees a transition, in (0, 1]
-    """
-    check_int("n_masks", n_masks, 1, "the number of bootstrapped heads")
-    meaning = "probability that a head sees a transition; 1 turns bootstrap off"
-    check_float("mask_prob", mask_prob, 0.0, 1.0, True, False, meaning)
-
-
 class _MaskStorage:
     """The mask part shared by the flat and the Dict bootstrapped buffers."""
 
@@ -54,7 +44,7 @@ class _MaskStorage:
     masks: np.ndarray  # (buffer_size, n_envs, K) bool
 
     def _init_masks(self, n_masks: int, mask_prob: float) -> None:
-        check_mask_args(n_masks, mask_prob)
+        n_masks, mask_prob = check("n_masks", n_masks), check("mask_prob", mask_prob)
         self.n_masks = int(n_masks)
         self.mask_prob = float(mask_prob)
         self.masks = np.ones((self.buffer_size, self.n_envs, self.n_masks), dtype=bool)
@@ -165,3 +155,22 @@ class BootstrappedDictReplayBuffer(_MaskStorage, DictReplayBuffer):
             rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)),
             masks=self.to_torch(self.masks[batch_inds, env_indices]),  # (B, K)
         )
+
+
+def bootstrapped_buffer_class(replay_buffer_class: Any, observation_space: spaces.Space) -> type[ReplayBuffer]:
+    """
+    :param replay_buffer_class: what the user passed to SOUP (``None``: the default)
+    :param observation_space: the env's observation space
+    :return: the class of SOUP's replay buffer: a bootstrapped buffer (flat or Dict), which stores the masks
+    """
+    if replay_buffer_class is None:
+        return BootstrappedDictReplayBuffer if isinstance(observation_space, spaces.Dict) else BootstrappedReplayBuffer
+    if not (
+        isinstance(replay_buffer_class, type)
+        and issubclass(replay_buffer_class, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer))
+    ):
+        raise ValueError(
+            "replay_buffer_class must be None or a subclass of sb3_soup.BootstrappedReplayBuffer or "
+            f"BootstrappedDictReplayBuffer (SOUP needs the bootstrap masks), got {replay_buffer_class!r}"
+        )
+    return replay_buffer_class

@@ -8,7 +8,6 @@ The E-Q value of candidate k is ``v[k] = sum_i W[i, k] * V[i, k]`` where ``V[i, 
 Write your own by subclassing :class:`ConfidenceStrategy` and implementing :meth:`ConfidenceStrategy.weights`.
 """
 
-import math
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -20,37 +19,48 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_soup.networks import mlp
-from sb3_soup.validation import check_bool, check_float
+from sb3_soup.validation import CONFIDENCE_STRATEGIES, check
 
 if TYPE_CHECKING:
     from sb3_soup.policies import SOUPPolicy
 
-CONFIDENCE_STRATEGIES = ("none", "fixed", "decayed", "adaptive", "ucb")
+__all__ = [
+    "CONFIDENCE_STRATEGIES",
+    "AdaptiveConfidence",
+    "ConfidenceStep",
+    "ConfidenceStrategy",
+    "DecayedConfidence",
+    "FixedConfidence",
+    "NoConfidence",
+    "UCBConfidence",
+    "make_confidence",
+]
 
 
-class ConfidenceRollout(NamedTuple):
-    """The selections made while acting since the last update (all envs), for on-policy strategies."""
+class ConfidenceStep(NamedTuple):
+    """What happened at one vectorised environment step of ``learn``: SOUP hands it to the strategy, nothing more."""
 
-    observations: PyTorchObs  # (N, *obs_shape) or a dict of them
-    q_matrices: th.Tensor  # (N, Kc, Ka), detached
-    chosen: th.Tensor  # (N,) index of the executed candidate
-    rewards: th.Tensor  # (N,) reward that followed
+    # The selection made, when the ensemble made one from a Q matrix (None during the random warm-up, and with one actor
+    # and one critic head): the observations (n_envs, *obs_shape) as given to the policy, V (n_envs, Kc, Ka) and the
+    # index of the executed candidate (n_envs,)
+    observations: PyTorchObs | None
+    q_matrix: th.Tensor | None
+    chosen: th.Tensor | None
+    rewards: th.Tensor  # (n_envs,) the rewards that followed
 
 
 class ConfidenceStrategy(nn.Module, ABC):
     """
-    Interface of a confidence strategy.
+    Interface of a confidence strategy: the weights ``W`` of the E-Critic layer (eq. 7) and how they learn (eq. 8).
 
     - :meth:`weights` gives ``W`` (shape ``(B, Kc, Ka)``, or broadcastable to it) for a batch of observations;
     - :meth:`exploration_weights` gives the ``W`` used while exploring (``learn``, ``predict(deterministic=False)``),
       by default the same;
-    - :meth:`on_step` is called once per vectorised environment step during ``learn``;
-    - :meth:`update` is called after each training round with the selections made since the previous one
-      when :attr:`needs_rollout` is True, and returns values to log;
+    - :meth:`observe` is told what happened at each vectorised environment step of ``learn``;
+    - :meth:`update` is called after each training round, to learn from what it observed since; it returns values to log;
     - anything to save goes in parameters/buffers (saved with the policy) or :attr:`optimizer` (saved with the model).
     """
 
-    needs_rollout: bool = False
     optimizer: th.optim.Optimizer | None = None
 
     def __init__(self) -> None:
@@ -81,11 +91,15 @@ class ConfidenceStrategy(nn.Module, ABC):
         """
         return self.weights(obs, q_matrix)
 
-    def on_step(self, n_env_steps: int) -> None:
-        """Called after each vectorised environment step during ``learn`` with the number of env-steps taken."""
+    def observe(self, step: ConfidenceStep) -> None:
+        """
+        Called after every vectorised environment step of ``learn`` (warm-up included) with what happened.
 
-    def update(self, rollout: ConfidenceRollout) -> dict[str, float]:
-        """Learn from the selections made since the last update; return values to log (``train/<key>``)."""
+        :param step: the observations, the selection made and the rewards that followed
+        """
+
+    def update(self) -> dict[str, float]:
+        """Called after each training round: learn from what was observed since the last one; return values to log."""
         return {}
 
 
@@ -104,40 +118,23 @@ class NoConfidence(ConfidenceStrategy):
         return th.ones(1, self.n_critic_heads, self.n_actor_heads, device=q_matrix.device)
 
 
-class _PairedStrategy(ConfidenceStrategy):
-    """Strategies that weight critic head i on its own candidate i: need as many critic as actor heads (or one)."""
-
-    def setup(self, policy: "SOUPPolicy") -> None:
-        super().setup(policy)
-        n_critic, n_actor = self.n_critic_heads, self.n_actor_heads
-        if n_critic != n_actor and n_critic > 1 and n_actor > 1:
-            raise ValueError(
-                f"confidence={self.name!r} pairs critic head i with candidate i: it needs n_critic_heads == n_actor_heads "
-                f"(or one of them 1), got n_critic_heads={n_critic}, n_actor_heads={n_actor}; use 'none' or 'adaptive'"
-            )
-
-    name = "paired"
-
-
-class FixedConfidence(_PairedStrategy):
+class FixedConfidence(ConfidenceStrategy):
     """
     ``W[i, k] = alpha`` if ``i == k`` else ``(1 - alpha) / (K - 1)``.
 
     :param alpha: confidence of a critic head in its own actor head's candidate, in (0, 1)
     """
 
-    name = "fixed"
-
     def __init__(self, alpha: float = 0.5):
         super().__init__()
-        self.alpha = check_float("alpha", alpha, 0.0, 1.0, True, True, "fixed confidence of a head in its own candidate")
+        self.alpha = check("alpha", alpha)
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         alpha = th.tensor(self.alpha, device=q_matrix.device)
         return _pairwise_weights(alpha, self.n_critic_heads, self.n_actor_heads)
 
 
-class DecayedConfidence(_PairedStrategy):
+class DecayedConfidence(ConfidenceStrategy):
     """
     ``W[i, k] = d`` if ``i == k`` else ``(1 - d) / (K - 1)``, with ``d = max(1 / K, decay ** n_steps)``:
     from 1.0 down to 1/K, multiplied by ``decay`` at each environment step.
@@ -145,12 +142,11 @@ class DecayedConfidence(_PairedStrategy):
     :param decay: multiplicative decay per env-step, in (0, 1]
     """
 
-    name = "decayed"
     n_steps: th.Tensor
 
     def __init__(self, decay: float = 0.9995):
         super().__init__()
-        self.decay = check_float("decay", decay, 0.0, 1.0, True, False, "per-step decay of the decayed confidence")
+        self.decay = check("decay", decay)
         self.register_buffer("n_steps", th.zeros((), dtype=th.float64))
 
     @property
@@ -158,8 +154,8 @@ class DecayedConfidence(_PairedStrategy):
         """Current confidence ``d`` of a critic head in its own candidate."""
         return max(1.0 / max(self.n_critic_heads, 1), self.decay ** float(self.n_steps))
 
-    def on_step(self, n_env_steps: int) -> None:
-        self.n_steps += n_env_steps
+    def observe(self, step: ConfidenceStep) -> None:
+        self.n_steps += len(step.rewards)
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         return _pairwise_weights(th.tensor(self.diagonal, device=q_matrix.device), self.n_critic_heads, self.n_actor_heads)
@@ -177,11 +173,9 @@ class UCBConfidence(ConfidenceStrategy):
     :param ucb_lambda: weight of the bonus, >= 0 (0: the mean of the heads)
     """
 
-    name = "ucb"
-
     def __init__(self, ucb_lambda: float = 1.0):
         super().__init__()
-        self.ucb_lambda = check_float("ucb_lambda", ucb_lambda, 0.0, math.inf, False, True, "weight of the UCB bonus")
+        self.ucb_lambda = check("ucb_lambda", ucb_lambda)
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         return th.full((1, self.n_critic_heads, self.n_actor_heads), 1.0 / self.n_critic_heads, device=q_matrix.device)
@@ -238,7 +232,6 @@ class AdaptiveConfidence(ConfidenceStrategy):
     :param eps: lower clamp of the confidence, in (0, 1)
     """
 
-    needs_rollout = True
     reward_baseline: th.Tensor
     baseline_ready: th.Tensor
 
@@ -250,18 +243,20 @@ class AdaptiveConfidence(ConfidenceStrategy):
         baseline_rate: float = 0.01,
         net_arch: list[int] | None = None,
         eps: float = 1e-3,
+        max_rollout: int = 100_000,
     ):
         super().__init__()
-        self.lr = check_float("confidence_lr", lr, 0.0, math.inf, True, True, "confidence network learning rate")
-        self.temperature = check_float(
-            "temperature", temperature, 0.0, math.inf, True, True, "softmax temperature of the selection"
-        )
-        self.baseline = check_bool("confidence_baseline", baseline, "running-mean reward baseline in REINFORCE")
-        self.baseline_rate = check_float("baseline_rate", baseline_rate, 0.0, 1.0, True, False, "update rate of the baseline")
-        self.eps = check_float("eps", eps, 0.0, 1.0, True, True, "lower clamp of the confidence")
+        self.lr = check("confidence_lr", lr)
+        self.temperature = check("temperature", temperature)
+        self.baseline = check("confidence_baseline", baseline)
+        self.baseline_rate = check("baseline_rate", baseline_rate)
+        self.eps = check("eps", eps)
+        self.max_rollout = max_rollout
         self.net_arch = [256, 128] if net_arch is None else list(net_arch)
         self.register_buffer("reward_baseline", th.zeros(()))
         self.register_buffer("baseline_ready", th.zeros((), dtype=th.bool))
+        # The selections made since the last update, with their rewards: REINFORCE is on-policy
+        self._rollout: list[ConfidenceStep] = []
 
     def setup(self, policy: "SOUPPolicy") -> None:
         super().setup(policy)
@@ -286,14 +281,35 @@ class AdaptiveConfidence(ConfidenceStrategy):
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         return self.confidence(obs).unsqueeze(-1)  # (B, Kc, 1): the same c_i for every candidate
 
-    def update(self, rollout: ConfidenceRollout) -> dict[str, float]:
-        if self.n_actor_heads == 1:
+    def observe(self, step: ConfidenceStep) -> None:
+        if step.q_matrix is None:
+            return  # no selection: nothing to learn from
+        self._rollout.append(step)
+        if len(self._rollout) > self.max_rollout:  # no training round came to use them (e.g. gradient_steps=0)
+            del self._rollout[0]
+
+    def update(self) -> dict[str, float]:
+        steps, self._rollout = self._rollout, []
+        if self.n_actor_heads == 1 or not steps:
             return {}  # one candidate: the selection policy is constant, nothing to learn
-        confidence = self.confidence(rollout.observations)  # (N, Kc)
-        e_q = (confidence.unsqueeze(-1) * rollout.q_matrices).sum(dim=1)  # (N, Ka)
+        observations: PyTorchObs
+        if isinstance(steps[0].observations, dict):
+            observations = {key: th.cat([step.observations[key] for step in steps]) for key in steps[0].observations}  # type: ignore[index]
+        else:
+            observations = th.cat([step.observations for step in steps])  # type: ignore[misc]
+        q_matrices = th.cat([step.q_matrix for step in steps])  # type: ignore[misc]  # (N, Kc, Ka)
+        chosen = th.cat([step.chosen for step in steps])  # type: ignore[misc]  # (N,)
+        return self._reinforce(observations, q_matrices, chosen, th.cat([step.rewards for step in steps]))
+
+    def _reinforce(
+        self, observations: PyTorchObs, q_matrices: th.Tensor, chosen: th.Tensor, rewards: th.Tensor
+    ) -> dict[str, float]:
+        """Eq. 8: one REINFORCE step on the selections ``chosen`` made from ``q_matrices``, and the ``rewards`` after them."""
+        confidence = self.confidence(observations)  # (N, Kc)
+        e_q = (confidence.unsqueeze(-1) * q_matrices).sum(dim=1)  # (N, Ka)
         log_prob = F.log_softmax(e_q / self.temperature, dim=1)  # (N, Ka)
-        chosen_log_prob = log_prob.gather(1, rollout.chosen.long().unsqueeze(1)).squeeze(1)  # (N,)
-        rewards = rollout.rewards.float()
+        chosen_log_prob = log_prob.gather(1, chosen.long().unsqueeze(1)).squeeze(1)  # (N,)
+        rewards = rewards.float()
         advantage = rewards - self.reward_baseline if self.baseline else rewards  # (N,)
         loss = -(chosen_log_prob * advantage).mean()
         with th.no_grad():  # how decided the selection policy is: near 1 saturated, near 1/Ka flat
@@ -319,35 +335,6 @@ class AdaptiveConfidence(ConfidenceStrategy):
         }
 
 
-def check_strategy(confidence: Any) -> None:
-    """
-    Refuse, with a message saying what is expected, anything that is neither a strategy name nor a usable
-    :class:`ConfidenceStrategy` instance.
-
-    :param confidence: "none", "fixed", "decayed", "adaptive" (any case), or a :class:`ConfidenceStrategy` instance
-    """
-    accepted = f"one of {CONFIDENCE_STRATEGIES} or an instance of a sb3_soup.ConfidenceStrategy subclass"
-    if isinstance(confidence, str):
-        if confidence.lower() not in CONFIDENCE_STRATEGIES:
-            raise ValueError(f"confidence must be {accepted}, got {confidence!r}")
-        return
-    if not isinstance(confidence, ConfidenceStrategy):
-        hint = (
-            " (it has a weights method: subclass sb3_soup.ConfidenceStrategy, an nn.Module, so that its state is saved)"
-            if callable(getattr(confidence, "weights", None))
-            else ""
-        )
-        raise ValueError(
-            f"confidence must be {accepted} implementing weights(obs, q_matrix) -> W, "
-            f"got {confidence!r} of type {type(confidence).__name__}{hint}"
-        )
-    if "_parameters" not in vars(confidence):
-        raise ValueError(
-            f"confidence: {type(confidence).__name__}.__init__ must call super().__init__() "
-            "(a ConfidenceStrategy is an nn.Module, whose state is saved with the policy)"
-        )
-
-
 def check_update_logs(strategy: ConfidenceStrategy, logs: Any) -> dict[str, float]:
     """
     :param strategy: the strategy whose :meth:`ConfidenceStrategy.update` returned ``logs``
@@ -367,20 +354,18 @@ def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> Co
     Build a strategy from its name (keyword arguments are passed to it; unused ones are ignored) or check a
     user's strategy object.
 
-    :param confidence: "none", "fixed", "decayed", "adaptive", or a :class:`ConfidenceStrategy` instance
+    :param confidence: "none", "fixed", "decayed", "adaptive", "ucb", or a :class:`ConfidenceStrategy` instance
     """
-    check_strategy(confidence)
+    confidence = check("confidence", confidence)
     if isinstance(confidence, ConfidenceStrategy):
         return confidence
-    name = confidence.lower()
-    if name == "none":
-        return NoConfidence()
-    if name == "fixed":
-        return FixedConfidence(alpha=kwargs.get("alpha", 0.5))
-    if name == "decayed":
-        return DecayedConfidence(decay=kwargs.get("decay", 0.9995))
-    if name == "ucb":
-        return UCBConfidence(ucb_lambda=kwargs.get("ucb_lambda", 1.0))
-    return AdaptiveConfidence(
-        lr=kwargs.get("lr", 1e-4), temperature=kwargs.get("temperature", 1.0), baseline=kwargs.get("baseline", True)
-    )
+    builders = {
+        "none": lambda: NoConfidence(),
+        "fixed": lambda: FixedConfidence(alpha=kwargs.get("alpha", 0.5)),
+        "decayed": lambda: DecayedConfidence(decay=kwargs.get("decay", 0.9995)),
+        "ucb": lambda: UCBConfidence(ucb_lambda=kwargs.get("ucb_lambda", 1.0)),
+        "adaptive": lambda: AdaptiveConfidence(
+            lr=kwargs.get("lr", 1e-4), temperature=kwargs.get("temperature", 1.0), baseline=kwargs.get("baseline", True)
+        ),
+    }
+    return builders[confidence]()

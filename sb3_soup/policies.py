@@ -1,11 +1,14 @@
 """SOUP policy: bootstrapped actor and critic, their targets, the confidence strategy, and the ensemble selection."""
 
+import inspect
+import warnings
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
@@ -13,7 +16,7 @@ from torch import nn
 from sb3_soup.confidence import ConfidenceStrategy, make_confidence
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, HeadIndex
 from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
-from sb3_soup.validation import check_int
+from sb3_soup.validation import check, check_head_counts
 
 # The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
 DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
@@ -40,11 +43,6 @@ def parse_net_arch(net_arch: dict[str, list[int]] | None) -> dict[str, list[int]
         if not valid:
             raise ValueError(f"net_arch[{key!r}] must be a list of positive ints (layer sizes), e.g. {default}; got {sizes!r}")
         arch[key] = [int(size) for size in sizes]
-    if len(arch["qf_body"]) < 2:
-        raise ValueError(
-            f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), e.g. [256, 256]; "
-            f"got {arch['qf_body']}"
-        )
     return arch
 
 
@@ -94,6 +92,40 @@ def e_actor(candidates: th.Tensor, e_q: th.Tensor) -> tuple[th.Tensor, th.Tensor
     """
     chosen = e_q.argmax(dim=1)  # (B,)
     return candidates[chosen, th.arange(candidates.shape[1], device=candidates.device)], chosen
+
+
+def check_policy(
+    policy_class: Any, policy_kwargs: dict[str, Any], observation_space: spaces.Space, aliases: list[str]
+) -> None:
+    """
+    What SB3's checks let through but SOUP refuses: a policy that is not a :class:`SOUPPolicy`, unknown
+    ``policy_kwargs``, ``MultiInputPolicy`` on non-Dict observations; and a warning when image pixels go into an MLP.
+
+    :param policy_class: the policy class
+    :param policy_kwargs: its keyword arguments (SOUP's own included)
+    :param observation_space: the env's observation space
+    :param aliases: the policy names SOUP accepts
+    """
+    if not (isinstance(policy_class, type) and issubclass(policy_class, SOUPPolicy)):
+        raise ValueError(f"policy must be one of {aliases} or a sb3_soup.SOUPPolicy subclass, got {policy_class!r}")
+    accepted = inspect.signature(policy_class.__init__).parameters
+    if not any(parameter.kind == inspect.Parameter.VAR_KEYWORD for parameter in accepted.values()):
+        set_by_soup = {"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"}
+        names = sorted(set(accepted) - {"self", "observation_space", "action_space", "lr_schedule"} - set_by_soup)
+        unknown = sorted(set(policy_kwargs) - set(names) - set_by_soup)
+        if unknown:
+            raise ValueError(f"policy_kwargs has unknown keys {unknown}; {policy_class.__name__} accepts {names}")
+    if issubclass(policy_class, MultiInputPolicy) and not isinstance(observation_space, spaces.Dict):
+        raise ValueError(f"policy must be 'MlpPolicy' for {observation_space} observations ('MultiInputPolicy' is for Dict)")
+    extractor = policy_kwargs.get("features_extractor_class", FlattenExtractor)
+    if is_image_space(observation_space, check_channels=False) and extractor is FlattenExtractor:
+        warnings.warn(
+            f"the observations are images {observation_space.shape}: MlpPolicy flattens their pixels (scaled to "
+            "[0, 1]) into the MLP, as SB3's DDPG does. For a CNN pass "
+            "policy_kwargs=dict(features_extractor_class=stable_baselines3.common.torch_layers.NatureCNN)",
+            UserWarning,
+            stacklevel=4,
+        )
 
 
 class TrainedHeads(NamedTuple):
@@ -178,17 +210,12 @@ class SOUPPolicy(BasePolicy):
             squash_output=True,
             normalize_images=normalize_images,
         )
-        n_actor_heads = check_int("n_actor_heads", n_actor_heads, 1, "number of actor heads")
-        n_critic_heads = check_int("n_critic_heads", n_critic_heads, 1, "number of critic heads")
+        n_actor_heads, n_critic_heads = check("n_actor_heads", n_actor_heads), check("n_critic_heads", n_critic_heads)
+        check_head_counts(n_actor_heads, n_critic_heads)
         if not (isinstance(activation_fn, type) and issubclass(activation_fn, nn.Module)):
             raise ValueError(
                 f"activation_fn must be an nn.Module class such as nn.LeakyReLU (the class, not an instance), "
                 f"got {activation_fn!r}"
-            )
-        if n_actor_heads != n_critic_heads and min(n_actor_heads, n_critic_heads) > 1:
-            raise ValueError(
-                "actor head k is paired with critic head k: n_actor_heads and n_critic_heads must be equal or one of them 1, "
-                f"got n_actor_heads={n_actor_heads}, n_critic_heads={n_critic_heads}"
             )
         self.net_arch = parse_net_arch(net_arch)
         self.activation_fn = activation_fn
@@ -197,7 +224,7 @@ class SOUPPolicy(BasePolicy):
         self.confidence_spec = confidence
         self.confidence_kwargs = {} if confidence_kwargs is None else dict(confidence_kwargs)
         # std of the Gaussian noise added by predict(deterministic=False), set by the algorithm's schedule
-        self.exploration_std = 0.0
+        self.current_noise_std = 0.0
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -329,8 +356,8 @@ class SOUPPolicy(BasePolicy):
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         actions = self.select(observation, explore=not deterministic).actions  # (B, A) in [-1, 1]
-        if not deterministic and self.exploration_std > 0:
-            actions = (actions + self.exploration_std * th.randn_like(actions)).clamp(-1.0, 1.0)
+        if not deterministic and self.current_noise_std > 0:
+            actions = (actions + self.current_noise_std * th.randn_like(actions)).clamp(-1.0, 1.0)
         return actions
 
     def set_training_mode(self, mode: bool) -> None:

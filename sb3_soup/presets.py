@@ -1,5 +1,5 @@
 """
-The paper's model family (Figure 1, Table 1) as settings of one class.
+The paper's model family (Figure 1, Table 1) as settings of one class, and the paper's hyper-parameters.
 
 | preset       | actor heads | critic heads | confidence | masks       |
 |--------------|-------------|--------------|------------|-------------|
@@ -12,6 +12,8 @@ The paper's model family (Figure 1, Table 1) as settings of one class.
 
 from typing import Any
 
+from sb3_soup.validation import check, check_arguments
+
 # Values are either numbers or "K" (replaced by n_heads)
 PRESETS: dict[str, dict[str, Any]] = {
     "ddpg": dict(n_actor_heads=1, n_critic_heads=1, confidence="none", mask_prob=1.0),
@@ -20,6 +22,42 @@ PRESETS: dict[str, dict[str, Any]] = {
     "dbddpg": dict(n_actor_heads="K", n_critic_heads="K", confidence="none"),
     "soup": dict(n_actor_heads="K", n_critic_heads="K", confidence="adaptive"),
 }
+
+# SOUP's ensemble without a preset: K actor and K critic heads, and these
+DEFAULT_CONFIDENCE = "adaptive"
+DEFAULT_MASK_PROB = 0.5
+
+
+def paper_settings() -> dict[str, Any]:
+    """
+    The paper's hyper-parameters and update (Section 5 and Algorithm 1), for ``SOUP(policy, env, **paper_settings())``:
+    Adam with actor lr 1e-4 and critic lr 3e-4, gamma 0.99, tau 1e-3, batch 1024, a replay memory of 1e6, the paper's
+    networks (actor (256, **128**), critic (256, 256, **128**), LeakyReLU), one randomly drawn head pair trained per
+    episode on its own target, no delayed or smoothed updates. Not in the paper, our choices: Gaussian exploration
+    noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per step down to 0.05, 1000 random steps first, and
+    the confidence network's lr 1e-4. K is the user's (the paper: 5 or 10), as is the preset.
+
+    :return: SOUP constructor arguments
+    """
+    return dict(
+        learning_rate=1e-4,
+        critic_learning_rate=3e-4,
+        buffer_size=1_000_000,
+        learning_starts=1000,
+        batch_size=1024,
+        tau=1e-3,
+        gamma=0.99,
+        train_heads="active",
+        target_q="own",
+        policy_delay=1,
+        target_policy_noise=0.0,
+        mask_prob=DEFAULT_MASK_PROB,
+        noise_std=0.2,
+        noise_decay=0.999995,
+        noise_std_min=0.05,
+        confidence_lr=1e-4,
+        policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
+    )
 
 
 def normalize_preset_name(name: str) -> str:
@@ -35,3 +73,35 @@ def normalize_preset_name(name: str) -> str:
 def resolve_preset(name: str, n_heads: int) -> dict[str, Any]:
     """Settings of a preset for ``n_heads`` heads."""
     return {key: (n_heads if value == "K" else value) for key, value in PRESETS[normalize_preset_name(name)].items()}
+
+
+def resolve_model(
+    n_heads: int,
+    n_actor_heads: int | None,
+    n_critic_heads: int | None,
+    preset: str | None,
+    confidence: Any,
+    mask_prob: float | None,
+) -> dict[str, Any]:
+    """
+    The model of the family that SOUP's arguments describe: head counts, confidence and mask probability from the
+    explicit arguments, else the preset's, else the defaults (K x K heads, :data:`DEFAULT_CONFIDENCE`,
+    :data:`DEFAULT_MASK_PROB`). A preset's head counts and confidence cannot be contradicted (its mask probability can).
+
+    :return: ``n_heads``, ``n_actor_heads``, ``n_critic_heads``, ``confidence``, ``mask_prob`` and ``preset`` (its key)
+    """
+    given = check_arguments(n_actor_heads=n_actor_heads, n_critic_heads=n_critic_heads, confidence=confidence)
+    if mask_prob is not None:
+        given["mask_prob"] = check("mask_prob", mask_prob)
+    n_heads = check("n_heads", n_heads)
+    settings: dict[str, Any] = dict(
+        n_actor_heads=n_heads, n_critic_heads=n_heads, confidence=DEFAULT_CONFIDENCE, mask_prob=DEFAULT_MASK_PROB
+    )
+    if preset is not None:
+        preset = normalize_preset_name(preset)
+        for key, value in resolve_preset(preset, n_heads).items():
+            if given.get(key) is not None and key != "mask_prob" and given[key] != value:
+                raise ValueError(f"preset={preset!r} sets {key}={value!r}, but {key}={given[key]!r} was given: drop one")
+            settings[key] = value
+    settings.update({key: value for key, value in given.items() if value is not None})
+    return dict(settings, preset=preset, n_heads=n_heads)

@@ -1,11 +1,9 @@
 """SOUP: Self-Adaptive Double Bootstrapped DDPG, as a Stable-Baselines3 off-policy algorithm."""
 
-import inspect
 import io
-import math
 import pathlib
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -15,9 +13,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.save_util import load_from_pkl
-from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import update_learning_rate
 
@@ -31,14 +27,15 @@ from sb3_soup.buffers import (
     BootstrappedDictReplayBufferSamples,
     BootstrappedReplayBuffer,
     BootstrappedReplayBufferSamples,
-    check_mask_args,
+    bootstrapped_buffer_class,
 )
-from sb3_soup.confidence import ConfidenceRollout, ConfidenceStrategy, check_strategy, check_update_logs
+from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
+from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.losses import actor_loss, critic_loss, td_target
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
-from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads
-from sb3_soup.presets import normalize_preset_name, resolve_preset
+from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
+from sb3_soup.presets import resolve_model
 from sb3_soup.saving import (
     SAVE_FORMAT_VERSION,
     capture_rng_state,
@@ -47,130 +44,11 @@ from sb3_soup.saving import (
     read_saved_data,
     restore_rng_state,
 )
-from sb3_soup.validation import check_bool, check_choice, check_float, check_int, check_learning_rate
+from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
 __version__ = package_version()
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
-
-TRAIN_HEADS = ("active", "all", "all_critics")
-TARGET_Q = ("own", "min_pair")
-
-
-def _all_finite(value: np.ndarray | dict[str, np.ndarray]) -> bool:
-    if isinstance(value, dict):
-        return all(_all_finite(item) for item in value.values())
-    array = np.asarray(value)
-    return not np.issubdtype(array.dtype, np.floating) or bool(np.isfinite(array).all())
-
-
-def _check_train_freq(name: str, value: Any) -> Any:
-    if isinstance(value, (tuple, list)) and len(value) == 2 and isinstance(value[1], str):
-        check_int(f"{name}[0]", value[0], 1, "how many steps or episodes between training rounds")
-        check_choice(f"{name}[1]", value[1], ("step", "episode"), "unit of train_freq")
-        return value
-    try:
-        return check_int(name, value, 1)
-    except ValueError:
-        raise ValueError(
-            f"{name} must be an integer >= 1 (train every n steps) or a tuple (n, 'step' | 'episode'), "
-            f"got {value!r} ({type(value).__name__})"
-        ) from None
-
-
-def _check_seed(name: str, value: Any) -> int | None:
-    if value is None:
-        return None
-    seed = check_int(name, value, 0, "or None")
-    if seed >= 2**32:
-        raise ValueError(f"{name} must be None or an integer in [0, 2**32 - 1] (NumPy's seed range), got {value!r}")
-    return seed
-
-
-def _check_action_noise(name: str, value: Any) -> Any:
-    if value is not None and not isinstance(value, ActionNoise):
-        raise ValueError(
-            f"{name} must be None (the built-in decayed Gaussian noise: noise_std, noise_decay, noise_std_min) or an "
-            f"instance of stable_baselines3.common.noise.ActionNoise, got {value!r} ({type(value).__name__})"
-        )
-    return value
-
-
-def _check_replay_buffer_kwargs(name: str, value: Any) -> Any:
-    if value is None:
-        return value
-    if not isinstance(value, dict):
-        raise ValueError(f"{name} must be None or a dict of replay buffer arguments, got {value!r} ({type(value).__name__})")
-    reserved = sorted({"n_masks", "mask_prob"} & set(value))
-    if reserved:
-        raise ValueError(
-            f"{name} must not set {reserved}: SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
-        )
-    return value
-
-
-def _check_policy_kwargs(name: str, value: Any) -> Any:
-    if value is None:
-        return value
-    if not isinstance(value, dict):
-        raise ValueError(f"{name} must be None or a dict of policy arguments, got {value!r} ({type(value).__name__})")
-    reserved = sorted({"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"} & set(value))
-    if reserved:
-        raise ValueError(f"{name} must not set {reserved}: set them as SOUP arguments (n_heads, preset, confidence...)")
-    return value
-
-
-def _float_check(low: float, high: float, low_open: bool, high_open: bool, meaning: str) -> Callable[[str, Any], float]:
-    return lambda name, value: check_float(name, value, low, high, low_open, high_open, meaning)
-
-
-def _int_check(minimum: int, meaning: str) -> Callable[[str, Any], int]:
-    return lambda name, value: check_int(name, value, minimum, meaning)
-
-
-def _bool_check(meaning: str) -> Callable[[str, Any], bool]:
-    return lambda name, value: check_bool(name, value, meaning)
-
-
-def _lr_check(name: str, value: Any) -> Any:
-    check_learning_rate(name, value)
-    return value
-
-
-# One check per constructor argument (by name): SOUP(...) and SOUP.load(..., **kwargs) use them
-_ARGUMENT_CHECKS: dict[str, Callable[[str, Any], Any]] = {
-    "learning_rate": _lr_check,
-    "critic_learning_rate": _lr_check,
-    "buffer_size": _int_check(1, "replay buffer size"),
-    "learning_starts": _int_check(0, "steps of random actions before learning"),
-    "batch_size": _int_check(1, "minibatch size"),
-    "tau": _float_check(0.0, 1.0, True, False, "soft update coefficient"),
-    "gamma": _float_check(0.0, 1.0, False, False, "discount factor"),
-    "train_freq": _check_train_freq,
-    "gradient_steps": _int_check(-1, "gradient steps after each rollout, -1: as many as env steps"),
-    "action_noise": _check_action_noise,
-    "replay_buffer_kwargs": _check_replay_buffer_kwargs,
-    "optimize_memory_usage": _bool_check("memory efficient replay buffer"),
-    "alpha": _float_check(0.0, 1.0, True, True, "fixed confidence of a head in its own candidate"),
-    "decay": _float_check(0.0, 1.0, True, False, "per-step decay of the decayed confidence"),
-    "temperature": _float_check(0.0, math.inf, True, True, "softmax temperature of the selection"),
-    "confidence_lr": _float_check(0.0, math.inf, True, True, "confidence network learning rate"),
-    "confidence_baseline": _bool_check("running-mean reward baseline in REINFORCE"),
-    "ucb_lambda": _float_check(0.0, math.inf, False, True, "weight of the UCB bonus"),
-    "mask_prob": _float_check(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off"),
-    "train_heads": lambda name, value: check_choice(name, value, TRAIN_HEADS, "which head pairs each gradient step trains"),
-    "target_q": lambda name, value: check_choice(name, value, TARGET_Q, "which target critic heads each head bootstraps from"),
-    "policy_delay": _int_check(1, "critic updates per actor and target update"),
-    "target_policy_noise": _float_check(0.0, math.inf, False, True, "std of the target action's smoothing noise, 0: none"),
-    "target_noise_clip": _float_check(0.0, math.inf, False, True, "limit of the target action's smoothing noise"),
-    "noise_std": _float_check(0.0, math.inf, False, True, "initial exploration noise std"),
-    "noise_decay": _float_check(0.0, 1.0, True, False, "noise std decay per env step"),
-    "noise_std_min": _float_check(0.0, math.inf, False, True, "lowest exploration noise std"),
-    "check_finite": _bool_check("raise at the first NaN/inf observation, reward, Q value or loss"),
-    "stats_window_size": _int_check(1, "episodes averaged in the rollout logs"),
-    "policy_kwargs": _check_policy_kwargs,
-    "seed": _check_seed,
-}
 
 # Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
 _STRUCTURAL_ARGUMENTS = (
@@ -319,8 +197,8 @@ class SOUP(OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ):
-        settings = self._resolve_settings(n_heads, n_actor_heads, n_critic_heads, preset, confidence, mask_prob)
-        args = self._check_arguments(
+        model = resolve_model(n_heads, n_actor_heads, n_critic_heads, preset, confidence, mask_prob)
+        args = check_arguments(
             learning_rate=learning_rate,
             critic_learning_rate=critic_learning_rate,
             buffer_size=buffer_size,
@@ -352,8 +230,6 @@ class SOUP(OffPolicyAlgorithm):
             policy_kwargs=policy_kwargs,
             seed=seed,
         )
-        policy_kwargs = dict(policy_kwargs or {})
-
         super().__init__(
             policy,
             env,
@@ -369,7 +245,7 @@ class SOUP(OffPolicyAlgorithm):
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=args["optimize_memory_usage"],
-            policy_kwargs=policy_kwargs,
+            policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=args["stats_window_size"],
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -380,12 +256,12 @@ class SOUP(OffPolicyAlgorithm):
             support_multi_env=True,
         )
         self.critic_learning_rate = critic_learning_rate
-        self.n_heads: int = settings["n_heads"]
-        self.preset_name: str | None = settings["preset"]
-        self.n_actor_heads: int = settings["n_actor_heads"]
-        self.n_critic_heads: int = settings["n_critic_heads"]
-        self.confidence = settings["confidence"]
-        self.mask_prob: float = settings["mask_prob"]
+        self.n_heads: int = model["n_heads"]
+        self.preset_name: str | None = model["preset"]
+        self.n_actor_heads: int = model["n_actor_heads"]
+        self.n_critic_heads: int = model["n_critic_heads"]
+        self.confidence = model["confidence"]
+        self.mask_prob: float = model["mask_prob"]
         self.alpha: float = args["alpha"]
         self.decay: float = args["decay"]
         self.temperature: float = args["temperature"]
@@ -401,7 +277,7 @@ class SOUP(OffPolicyAlgorithm):
         self.noise_decay: float = args["noise_decay"]
         self.noise_std_min: float = args["noise_std_min"]
         self.check_finite: bool = args["check_finite"]
-        self.exploration_std = self.noise_std
+        self.current_noise_std = self.noise_std
         # Saved with the model: which sb3-soup wrote it, in which save format (see sb3_soup.saving)
         self._sb3_soup_format = SAVE_FORMAT_VERSION
         self._sb3_soup_version = __version__
@@ -419,72 +295,14 @@ class SOUP(OffPolicyAlgorithm):
                 ucb_lambda=self.ucb_lambda,
             ),
         )
-        # Per env: the head pair trained during its current episode (drawn at each episode start)
-        self._active_heads: np.ndarray | None = None
-        # Selections made while acting, kept for on-policy confidence strategies until the next update
-        self._pending_selection: tuple[PyTorchObs, th.Tensor, th.Tensor] | None = None
-        self._confidence_rollout: list[tuple[PyTorchObs, th.Tensor, th.Tensor, th.Tensor]] = []
-        self._reset_ensemble_stats()
+        # Per env: the head pair trained during its current episode (Algorithm 1, drawn at each episode start)
+        self._active_pairs: np.ndarray | None = None
+        # The selection made at the step being taken, until its rewards come back (for the confidence strategy)
+        self._last_selection: tuple[PyTorchObs, Selection] | None = None
+        self._stats = EnsembleStats(self.n_actor_heads, self.n_critic_heads)
 
         if _init_setup_model:
-            self._warn_about_images()
             self._setup_model()
-
-    @staticmethod
-    def _resolve_settings(
-        n_heads: int,
-        n_actor_heads: int | None,
-        n_critic_heads: int | None,
-        preset: str | None,
-        confidence: str | ConfidenceStrategy | None,
-        mask_prob: float | None,
-    ) -> dict[str, Any]:
-        """Head counts, confidence and mask probability from the explicit arguments and the preset."""
-        n_heads = check_int("n_heads", n_heads, 1, "number of bootstrapped heads K")
-        n_actor_heads = None if n_actor_heads is None else check_int("n_actor_heads", n_actor_heads, 1, "or None: n_heads")
-        n_critic_heads = None if n_critic_heads is None else check_int("n_critic_heads", n_critic_heads, 1, "or None: n_heads")
-        if confidence is not None:
-            check_strategy(confidence)
-        given = dict(n_actor_heads=n_actor_heads, n_critic_heads=n_critic_heads, confidence=confidence, mask_prob=mask_prob)
-        settings: dict[str, Any] = dict(n_actor_heads=n_heads, n_critic_heads=n_heads, confidence="adaptive", mask_prob=0.5)
-        if preset is not None:
-            preset = normalize_preset_name(preset)
-            for key, value in resolve_preset(preset, n_heads).items():
-                explicit = given[key]
-                if isinstance(explicit, str):
-                    explicit = explicit.lower()
-                if explicit is not None and key != "mask_prob" and explicit != value:
-                    raise ValueError(f"preset={preset!r} sets {key}={value!r}, but {key}={given[key]!r} was given: drop one")
-                settings[key] = value
-        settings.update({key: value for key, value in given.items() if value is not None})
-        if isinstance(settings["confidence"], str):
-            settings["confidence"] = settings["confidence"].lower()
-        n_actor, n_critic = settings["n_actor_heads"], settings["n_critic_heads"]
-        if n_actor != n_critic and min(n_actor, n_critic) > 1:
-            raise ValueError(
-                "actor head k is paired with critic head k: n_actor_heads and n_critic_heads must be equal or one of them 1, "
-                f"got n_actor_heads={n_actor}, n_critic_heads={n_critic}"
-            )
-        check_mask_args(max(n_actor, n_critic), settings["mask_prob"])
-        settings["mask_prob"] = float(settings["mask_prob"])
-        settings["preset"] = preset
-        settings["n_heads"] = n_heads
-        return settings
-
-    @staticmethod
-    def _check_arguments(**kwargs: Any) -> dict[str, Any]:
-        """
-        Check the given arguments (any subset of the constructor's, see ``_ARGUMENT_CHECKS``); each error names the
-        parameter and the accepted values.
-
-        :return: the values, numbers converted to Python ``int``/``float``/``bool``
-        """
-        checked = dict(kwargs)
-        for name, value in kwargs.items():
-            check = _ARGUMENT_CHECKS.get(name)
-            if check is not None:
-                checked[name] = check(name, value)
-        return checked
 
     @classmethod
     def preset_names(cls) -> list[str]:
@@ -517,56 +335,15 @@ class SOUP(OffPolicyAlgorithm):
             )
         return self.policy_aliases[policy_name]
 
-    def _check_policy_and_spaces(self) -> None:
-        """What SB3's checks let through but SOUP refuses: other policies, unknown policy_kwargs, MultiInputPolicy on Box."""
-        if not (isinstance(self.policy_class, type) and issubclass(self.policy_class, SOUPPolicy)):
-            raise ValueError(
-                f"policy must be one of {sorted(self.policy_aliases)} or a sb3_soup.SOUPPolicy subclass, "
-                f"got {self.policy_class!r}"
-            )
-        accepted = inspect.signature(self.policy_class.__init__).parameters
-        if not any(parameter.kind == inspect.Parameter.VAR_KEYWORD for parameter in accepted.values()):
-            set_by_soup = {"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"}
-            names = sorted(set(accepted) - {"self", "observation_space", "action_space", "lr_schedule"} - set_by_soup)
-            unknown = sorted(set(self.policy_kwargs) - set(names) - set_by_soup)
-            if unknown:
-                raise ValueError(f"policy_kwargs has unknown keys {unknown}; {self.policy_class.__name__} accepts {names}")
-        if issubclass(self.policy_class, MultiInputPolicy) and not isinstance(self.observation_space, spaces.Dict):
-            raise ValueError(
-                f"policy must be 'MlpPolicy' for {self.observation_space} observations ('MultiInputPolicy' is for Dict)"
-            )
-
-    def _warn_about_images(self) -> None:
-        extractor = self.policy_kwargs.get("features_extractor_class", FlattenExtractor)
-        if is_image_space(self.observation_space, check_channels=False) and extractor is FlattenExtractor:
-            warnings.warn(
-                f"the observations are images {self.observation_space.shape}: MlpPolicy flattens their pixels (scaled to "
-                "[0, 1]) into the MLP, as SB3's DDPG does. For a CNN pass "
-                "policy_kwargs=dict(features_extractor_class=stable_baselines3.common.torch_layers.NatureCNN)",
-                UserWarning,
-                stacklevel=3,
-            )
-
     def _setup_model(self) -> None:
-        self._check_policy_and_spaces()
-        if self.replay_buffer_class is None:
-            self.replay_buffer_class = (
-                BootstrappedDictReplayBuffer if isinstance(self.observation_space, spaces.Dict) else BootstrappedReplayBuffer
-            )
-        elif not (
-            isinstance(self.replay_buffer_class, type)
-            and issubclass(self.replay_buffer_class, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer))
-        ):
-            raise ValueError(
-                "replay_buffer_class must be None or a subclass of sb3_soup.BootstrappedReplayBuffer or "
-                f"BootstrappedDictReplayBuffer (SOUP needs the bootstrap masks), got {self.replay_buffer_class!r}"
-            )
+        check_policy(self.policy_class, self.policy_kwargs, self.observation_space, sorted(self.policy_aliases))
+        self.replay_buffer_class = bootstrapped_buffer_class(self.replay_buffer_class, self.observation_space)
         self.replay_buffer_kwargs.update(n_masks=max(self.n_actor_heads, self.n_critic_heads), mask_prob=self.mask_prob)
         super()._setup_model()
         self._create_aliases()
         self.critic_lr_schedule = _as_schedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
-        self._update_exploration_std()
+        self._update_noise_std()
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -574,12 +351,17 @@ class SOUP(OffPolicyAlgorithm):
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
 
-    # ----- acting -----------------------------------------------------------------------------------------------
+    # ----- acting (Algorithm 1) ---------------------------------------------------------------------------------
 
-    def _update_exploration_std(self) -> None:
+    def _update_noise_std(self) -> None:
         """Gaussian noise std after ``num_timesteps`` env-steps: ``max(noise_std_min, noise_std * noise_decay ** t)``."""
-        self.exploration_std = max(self.noise_std_min, self.noise_std * self.noise_decay**self.num_timesteps)
-        self.policy.exploration_std = self.exploration_std
+        self.current_noise_std = max(self.noise_std_min, self.noise_std * self.noise_decay**self.num_timesteps)
+        self.policy.current_noise_std = self.current_noise_std
+
+    def _draw_active_pairs(self, envs: np.ndarray) -> None:
+        """Algorithm 1: every episode starts with a randomly selected head pair (one per env)."""
+        assert self._active_pairs is not None
+        self._active_pairs[envs] = np.random.randint(self.policy.n_pairs, size=len(envs))
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
@@ -591,34 +373,17 @@ class SOUP(OffPolicyAlgorithm):
         obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
         with th.no_grad():
             selection = self.policy.select(obs_tensor, explore=True)
-        self._record_selection(obs_tensor, selection)
+        if self.check_finite:
+            check_selection(selection, type(self.policy.confidence).__name__, self.num_timesteps)
+        self._stats.record(selection)
+        self._last_selection = (obs_tensor, selection)
         scaled_action = selection.actions.cpu().numpy()  # (n_envs, A) in [-1, 1]
         if action_noise is not None:
             noise = action_noise()
         else:
-            noise = np.random.normal(0.0, self.exploration_std, size=scaled_action.shape)
+            noise = np.random.normal(0.0, self.current_noise_std, size=scaled_action.shape)
         scaled_action = np.clip(scaled_action + noise, -1.0, 1.0)
         return self.policy.unscale_action(scaled_action), scaled_action
-
-    def _record_selection(self, obs: PyTorchObs, selection: Selection) -> None:
-        """Keep what the confidence strategy learns from, and the ensemble statistics to log."""
-        if self.check_finite:
-            self._check_selection(selection)
-        self._selection_counts += np.bincount(selection.chosen.cpu().numpy(), minlength=self.n_actor_heads)
-        self._n_selections += len(selection.chosen)
-        if selection.q_matrix is None or selection.weights is None:
-            return
-        q_matrix = selection.q_matrix  # (B, Kc, Ka)
-        if self.policy.confidence.needs_rollout and self.gradient_steps != 0:  # no training round would consume it
-            self._pending_selection = (obs, q_matrix, selection.chosen)
-        weights = selection.weights.expand_as(q_matrix)
-        heads = th.arange(self.n_critic_heads, device=q_matrix.device)
-        # confidence of critic head i in "its" candidate (candidate i, or the only one)
-        own = weights[:, heads, heads.clamp(max=self.n_actor_heads - 1)]  # (B, Kc)
-        self._confidence_sum += own.sum(dim=0).cpu().numpy()
-        if self.n_critic_heads > 1:
-            chosen_q = q_matrix.gather(2, selection.chosen.view(-1, 1, 1).expand(-1, self.n_critic_heads, 1))  # (B, Kc, 1)
-            self._q_spread_sum += float(chosen_q.std(dim=1).sum())
 
     def _store_transition(
         self,
@@ -630,28 +395,24 @@ class SOUP(OffPolicyAlgorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         if self.check_finite:
-            for name, value in (("observation", new_obs), ("reward", reward)):
-                if not _all_finite(value):
-                    raise ValueError(
-                        f"non-finite {name} (NaN or inf) returned by the environment at step {self.num_timesteps}: {value!r}. "
-                        "Fix the environment, wrap it in VecCheckNan to locate the cause, or pass check_finite=False"
-                    )
+            check_finite_env_output("observation", new_obs, f"by the environment at step {self.num_timesteps}")
+            check_finite_env_output("reward", reward, f"by the environment at step {self.num_timesteps}")
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
-        if self._pending_selection is not None:
-            obs, q_matrix, chosen = self._pending_selection
-            rewards = th.as_tensor(np.asarray(reward, dtype=np.float32), device=self.device)
-            self._confidence_rollout.append((obs, q_matrix, chosen, rewards))
-            self._pending_selection = None
-        # Algorithm 1: every episode starts with a randomly selected head pair
-        assert self._active_heads is not None
-        for env_idx in np.flatnonzero(dones):
-            self._active_heads[env_idx] = np.random.randint(self.policy.n_pairs)
+        # eq. 8's data: the strategy is told what happened (the selection, if the ensemble made one, and the rewards)
+        observations, selection = self._last_selection or (None, None)
+        rewards = th.as_tensor(np.asarray(reward, dtype=np.float32), device=self.device)
+        q_matrix = None if selection is None else selection.q_matrix
+        chosen = None if selection is None or q_matrix is None else selection.chosen
+        self.policy.confidence.observe(
+            ConfidenceStep(observations if q_matrix is not None else None, q_matrix, chosen, rewards)
+        )
+        self._last_selection = None
+        self._draw_active_pairs(np.flatnonzero(dones))
 
     def _on_step(self) -> None:
-        self.policy.confidence.on_step(self.n_envs)
-        self._update_exploration_std()
+        self._update_noise_std()
 
-    # ----- training ---------------------------------------------------------------------------------------------
+    # ----- training -------------------------------------------------------------------------------------------
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)
@@ -670,12 +431,17 @@ class SOUP(OffPolicyAlgorithm):
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_learning_rate", critic_lr)
-        self.logger.record("train/noise_std", self.exploration_std)
+        self.logger.record("train/noise_std", self.current_noise_std)
         if critic_losses:
             self.logger.record("train/critic_loss", np.mean(critic_losses))
         if actor_losses:
             self.logger.record("train/actor_loss", np.mean(actor_losses))
-        for key, value in self._update_confidence().items():
+        strategy = self.policy.confidence
+        logs = check_update_logs(strategy, strategy.update())  # eq. 8, on what the strategy observed since the last round
+        if self.check_finite and "confidence_loss" in logs:
+            name = type(strategy).__name__
+            check_loss("confidence_loss", logs["confidence_loss"], lambda: f"the {name}", self._n_updates, self.num_timesteps)
+        for key, value in logs.items():
             self.logger.record(f"train/{key}", value)
 
     def _gradient_step(self, data: Samples) -> tuple[list[float], list[float]]:
@@ -718,8 +484,8 @@ class SOUP(OffPolicyAlgorithm):
 
         :param masks: ``(P, B, 1)`` bootstrap masks of the minibatch
         """
-        assert self._active_heads is not None
-        active = [int(self._active_heads[(self._n_updates - 1) % len(self._active_heads)])]
+        assert self._active_pairs is not None
+        active = [int(self._active_pairs[(self._n_updates - 1) % len(self._active_pairs)])]
         every = list(range(self.policy.n_pairs))
         critic_pairs = active if self.train_heads == "active" else every
         actor_pairs = every if self.train_heads == "all" else active
@@ -757,55 +523,6 @@ class SOUP(OffPolicyAlgorithm):
             next_q = th.minimum(next_q, self.critic_target.heads(features, others))
         return next_q
 
-    def _check_loss(self, name: str, value: float, where: Callable[[], str]) -> None:
-        """
-        The one place where training stops on a non-finite loss (when ``check_finite``): costs a ``math.isfinite``
-        on a loss already fetched for logging; ``where`` is only called once a value is non-finite.
-
-        :param name: the loss ("critic_loss", "actor_loss", "confidence_loss")
-        :param value: its value
-        :param where: says what the loss trained (which head pairs, the confidence strategy)
-        """
-        if not self.check_finite or math.isfinite(value):
-            return
-        raise FloatingPointError(
-            f"non-finite {name} ({value}) for {where()} at update {self._n_updates} (step {self.num_timesteps}): the Q "
-            "values or their targets diverged. This update was applied, so the model's parameters may be non-finite too: "
-            "resume from an earlier checkpoint with lower learning rates or a rescaled reward, or pass check_finite=False "
-            "to train on anyway"
-        )
-
-    def _check_selection(self, selection: Selection) -> None:
-        """
-        Stop at the first non-finite E-action, Q value or confidence weight met while acting (when ``check_finite``):
-        one fused check on tensors already computed, the heads are only worked out once something is non-finite.
-        """
-        finite = th.isfinite(selection.actions).all()
-        if selection.q_matrix is not None and selection.weights is not None:
-            finite = finite & th.isfinite(selection.q_matrix).all() & th.isfinite(selection.weights).all()
-        if bool(finite):
-            return
-        problems = []
-        if selection.q_matrix is not None:
-            bad = ~th.isfinite(selection.q_matrix)  # (B, Kc, Ka)
-            bad_candidates = bad.all(dim=1).any(dim=0)  # (Ka,): every critic head gave a non-finite Q to this candidate
-            bad_critics = (bad & ~bad_candidates.view(1, 1, -1)).any(dim=2).any(dim=0)  # (Kc,): the other non-finite Qs
-            if bool(bad_candidates.any()):
-                heads = th.nonzero(bad_candidates).flatten().tolist()
-                problems.append(f"every critic head gave a non-finite Q value to the candidate(s) of actor head(s) {heads}")
-            if bool(bad_critics.any()):
-                problems.append(f"critic head(s) {th.nonzero(bad_critics).flatten().tolist()} gave non-finite Q values")
-        if selection.weights is not None and not bool(th.isfinite(selection.weights).all()):
-            problems.append(f"the confidence strategy {type(self.policy.confidence).__name__} gave non-finite weights")
-        bad_envs = ~th.isfinite(selection.actions).all(dim=1)
-        if bool(bad_envs.any()):
-            heads = sorted(set(selection.chosen[bad_envs].tolist()))
-            problems.append(f"actor head(s) {heads} proposed non-finite actions")
-        raise FloatingPointError(
-            f"non-finite values while acting at step {self.num_timesteps}: {'; '.join(problems)}. Resume from an earlier "
-            "checkpoint (with lower learning rates or a rescaled reward), or pass check_finite=False to act on anyway"
-        )
-
     def _optimize(
         self, model: EnsembleActor | EnsembleCritic, per_pair: th.Tensor, heads: TrainedHeads, pairs: list[int], name: str
     ) -> float:
@@ -826,46 +543,15 @@ class SOUP(OffPolicyAlgorithm):
         else:
             optimizer.step()
         value = loss.item()
-        self._check_loss(name, value, lambda: self.policy.describe_pairs(pairs, per_pair))
+        if self.check_finite:
+            check_loss(name, value, lambda: self.policy.describe_pairs(pairs, per_pair), self._n_updates, self.num_timesteps)
         return value
 
-    def _update_confidence(self) -> dict[str, float]:
-        """One update of the confidence strategy on the selections made since the last one (all envs)."""
-        if not self._confidence_rollout:
-            return {}
-        observations, q_matrices, chosen, rewards = zip(*self._confidence_rollout)
-        self._confidence_rollout = []
-        if isinstance(observations[0], dict):
-            obs_batch: PyTorchObs = {key: th.cat([obs[key] for obs in observations]) for key in observations[0]}  # type: ignore[index]
-        else:
-            obs_batch = th.cat(observations)  # type: ignore[arg-type]
-        rollout = ConfidenceRollout(obs_batch, th.cat(q_matrices), th.cat(chosen), th.cat(rewards))
-        logs = check_update_logs(self.policy.confidence, self.policy.confidence.update(rollout))
-        if "confidence_loss" in logs:
-            strategy = type(self.policy.confidence).__name__
-            self._check_loss("confidence_loss", logs["confidence_loss"], lambda: f"the {strategy}")
-        return logs
-
-    # ----- logging, saving --------------------------------------------------------------------------------------
-
-    def _reset_ensemble_stats(self) -> None:
-        self._selection_counts = np.zeros(self.n_actor_heads, dtype=np.int64)
-        self._confidence_sum = np.zeros(self.n_critic_heads)
-        self._q_spread_sum = 0.0
-        self._n_selections = 0
+    # ----- logging, learning ------------------------------------------------------------------------------------
 
     def dump_logs(self) -> None:
         """Log the ensemble statistics since the last dump, then SB3's usual rollout logs."""
-        if self._n_selections > 0:
-            for k, count in enumerate(self._selection_counts):
-                self.logger.record(f"selection/head_{k}", count / self._n_selections)
-            if self.n_actor_heads > 1 or self.n_critic_heads > 1:
-                for i, total in enumerate(self._confidence_sum):
-                    self.logger.record(f"confidence/head_{i}", total / self._n_selections)
-            if self.n_critic_heads > 1:
-                self.logger.record("rollout/q_spread", self._q_spread_sum / self._n_selections)
-        self.logger.record("train/noise_std", self.exploration_std)
-        self._reset_ensemble_stats()
+        self._stats.dump(self.logger)
         super().dump_logs()
 
     def _setup_learn(
@@ -878,17 +564,13 @@ class SOUP(OffPolicyAlgorithm):
     ) -> tuple[int, Any]:
         resets_env = reset_num_timesteps or self._last_obs is None
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
-        if self.check_finite and self._last_obs is not None and not _all_finite(self._last_obs):
-            raise ValueError(
-                f"non-finite observation (NaN or inf) returned by env.reset(): {self._last_obs!r}. "
-                "Fix the environment, wrap it in VecCheckNan to locate the cause, or pass check_finite=False"
-            )
-        if resets_env or self._active_heads is None or len(self._active_heads) != self.n_envs:
-            # new episodes: draw their head pairs; selections without their reward are dropped
-            self._active_heads = np.random.randint(self.policy.n_pairs, size=self.n_envs)
-            self._pending_selection = None
-            self._confidence_rollout = []
-        self._update_exploration_std()
+        if self.check_finite and self._last_obs is not None:
+            check_finite_env_output("observation", self._last_obs, "by env.reset()")
+        if resets_env or self._active_pairs is None or len(self._active_pairs) != self.n_envs:
+            self._active_pairs = np.zeros(self.n_envs, dtype=np.int64)
+            self._draw_active_pairs(np.arange(self.n_envs))  # new episodes
+            self._last_selection = None
+        self._update_noise_std()
         return result
 
     def learn(
@@ -908,6 +590,8 @@ class SOUP(OffPolicyAlgorithm):
             reset_num_timesteps=reset_num_timesteps,
             progress_bar=progress_bar,
         )
+
+    # ----- saving -----------------------------------------------------------------------------------------------
 
     def save(
         self,
@@ -966,7 +650,7 @@ class SOUP(OffPolicyAlgorithm):
                 + ", ".join(f"{key}={data.get(key)!r}" for key in fixed if not isinstance(data.get(key), dict))
                 + "; create a new SOUP to use other values"
             )
-        kwargs = cls._check_arguments(**kwargs)
+        kwargs = check_arguments(**kwargs)
         try:
             model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         except ValueError as error:

@@ -5,12 +5,18 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
-from sb3_soup import SOUP, AdaptiveConfidence, ConfidenceRollout, ConfidenceStrategy
+from sb3_soup import SOUP, AdaptiveConfidence, ConfidenceStep, ConfidenceStrategy
 
 
 def _strategy(n_heads: int = 2, **kwargs) -> AdaptiveConfidence:
     model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=n_heads, confidence=AdaptiveConfidence(**kwargs), seed=0)
     return model.policy.confidence  # type: ignore[return-value]
+
+
+def _feed(strategy: ConfidenceStrategy, obs, q_matrix, chosen, rewards) -> dict:
+    """What SOUP does around a training round: the strategy observes a step, then updates."""
+    strategy.observe(ConfidenceStep(obs, q_matrix, chosen, rewards))
+    return strategy.update()
 
 
 def test_confidence_stays_in_the_unit_interval():
@@ -36,7 +42,7 @@ def test_reinforce_raises_the_confidence_of_the_rewarded_critic_head(baseline):
     for _ in range(100):
         chosen = th.as_tensor(rng.integers(0, 2, size=64))
         rewards = th.where(chosen == 0, 1.0, -1.0)
-        strategy.update(ConfidenceRollout(obs, q_matrix, chosen, rewards))
+        _feed(strategy, obs, q_matrix, chosen, rewards)
     after = strategy.confidence(obs).mean(0).detach()
     assert after[0] - after[1] > before[0] - before[1] + 0.2
     assert after[0] > before[0] and after[1] < before[1]
@@ -51,29 +57,43 @@ def test_reinforce_with_positive_rewards_needs_the_baseline_to_tell_heads_apart(
     q_matrix = th.tensor([[1.0, 0.0], [0.0, 1.0]]).expand(64, 2, 2)
     for _ in range(100):
         chosen = th.as_tensor(rng.integers(0, 2, size=64))
-        strategy.update(ConfidenceRollout(obs, q_matrix, chosen, th.where(chosen == 0, 11.0, 9.0)))
+        _feed(strategy, obs, q_matrix, chosen, th.where(chosen == 0, 11.0, 9.0))
     confidence = strategy.confidence(obs).mean(0)
     assert confidence[0] > confidence[1] + 0.2
     assert float(strategy.reward_baseline) == pytest.approx(10.0, abs=0.5)
 
 
-def test_learning_feeds_the_strategy_the_selections_and_rewards_of_all_envs():
-    seen = []
+def test_learning_hands_the_strategy_each_step_of_all_envs_and_updates_it_after_each_round():
+    observed, updates = [], []
 
     class Recording(AdaptiveConfidence):
-        def update(self, rollout):
-            seen.append(rollout)
-            return super().update(rollout)
+        def observe(self, step):
+            observed.append(step)
+            super().observe(step)
+
+        def update(self):
+            updates.append(len(self._rollout))
+            return super().update()
 
     env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
     model = SOUP("MlpPolicy", env, n_heads=3, confidence=Recording(), learning_starts=10, batch_size=8, seed=0)
     model.learn(40)
-    assert seen, "the strategy was never updated"
-    rollout = seen[-1]
-    assert rollout.q_matrices.shape[1:] == (3, 3)
-    n = rollout.q_matrices.shape[0]
-    assert n % 2 == 0 and rollout.observations.shape == (n, 3) and rollout.chosen.shape == (n,) == rollout.rewards.shape
+    assert len(observed) == 20  # every vectorised step, warm-up included
+    warm_up, selected = observed[:5], observed[5:]
+    assert all(step.q_matrix is None and step.observations is None and step.rewards.shape == (2,) for step in warm_up)
+    for step in selected:
+        assert step.q_matrix.shape == (2, 3, 3) and step.observations.shape == (2, 3)
+        assert step.chosen.shape == (2,) == step.rewards.shape
+    assert updates and all(n == 1 for n in updates)  # one round per step (train_freq=1): each update sees one step
     assert "train/confidence_loss" in model.logger.name_to_value
+
+
+def test_the_adaptive_rollout_is_bounded_when_no_round_comes():
+    strategy = _strategy(n_heads=2)
+    strategy.max_rollout = 3
+    for _ in range(5):
+        strategy.observe(ConfidenceStep(th.zeros(1, 3), th.zeros(1, 2, 2), th.zeros(1, dtype=th.long), th.zeros(1)))
+    assert len(strategy._rollout) == 3
 
 
 def test_a_custom_strategy_is_used_and_saved(tmp_path):
@@ -129,12 +149,12 @@ def test_ucb_explores_towards_the_disputed_candidate_and_acts_greedily_on_the_me
 def test_adaptive_confidence_logs_how_decided_its_selection_policy_is():
     strategy = _strategy(n_heads=3)
     rng = np.random.default_rng(0)
-    rollout = ConfidenceRollout(
+    logs = _feed(
+        strategy,
         th.as_tensor(rng.normal(size=(32, 3)), dtype=th.float32),
         th.as_tensor(rng.normal(size=(32, 3, 3)), dtype=th.float32),
         th.as_tensor(rng.integers(0, 3, size=32)),
         th.as_tensor(rng.normal(size=32), dtype=th.float32),
     )
-    logs = strategy.update(rollout)
     assert 1 / 3 <= logs["selection_max_prob"] <= 1.0
     assert logs["selection_logit_spread"] > 0

@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_soup import SOUP
 from sb3_soup.experiments import checkpointing, logs
 from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
@@ -37,6 +36,7 @@ from sb3_soup.experiments.runner import (
     run_lock,
     run_one,
 )
+from sb3_soup.presets import resolve_model
 
 # Two cheap models: SOUP's DDPG preset and SOUP (adaptive confidence), with small networks.
 MODELS = "ddpg,soup"
@@ -235,7 +235,7 @@ def test_grid_suites_and_overrides(tmp_path):
     # DDPG is the one-head preset, whatever K the env's soup.yml entry gives (Pendulum-v1's says 5)
     ddpg = specs[0].hyperparams
     assert ddpg["preset"] == "ddpg"
-    settings = SOUP._resolve_settings(ddpg.get("n_heads", 1), None, None, ddpg["preset"], None, None)
+    settings = resolve_model(ddpg.get("n_heads", 1), None, None, ddpg["preset"], None, None)
     assert (settings["n_actor_heads"], settings["n_critic_heads"], settings["mask_prob"]) == (1, 1, 1.0)
     td3 = specs[-1].hyperparams
     assert td3["policy_kwargs"] == {"net_arch": [256, 256]} and "preset" not in td3 and "critic_learning_rate" not in td3
@@ -383,7 +383,7 @@ def _run_in_thread(target, *args, **kwargs):
     return thread, box
 
 
-def _wait_for(predicate, timeout: float = 120.0) -> None:
+def _wait_for(predicate, timeout: float = 300.0) -> None:
     deadline = time.time() + timeout
     while not predicate():
         assert time.time() < deadline, "timed out"

@@ -7,7 +7,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from sb3_soup import SOUP, BootstrappedDictReplayBuffer, BootstrappedReplayBuffer, DecayedConfidence, FixedConfidence
+from sb3_soup import (
+    SOUP,
+    BootstrappedDictReplayBuffer,
+    BootstrappedReplayBuffer,
+    ConfidenceStep,
+    DecayedConfidence,
+    FixedConfidence,
+)
 from sb3_soup.policies import e_actor, e_critic
 
 # Deterministic on CI: the same examples every run, no deadline on a loaded machine
@@ -72,7 +79,7 @@ def test_paired_strategies_treat_every_head_pair_alike(n_heads, alpha, n_steps, 
     fixed = FixedConfidence(alpha=alpha)
     for strategy in (fixed, decayed):
         strategy.setup(heads)  # type: ignore[arg-type]
-    decayed.on_step(n_steps)
+    decayed.observe(ConfidenceStep(None, None, None, th.zeros(n_steps)))
     for strategy in (fixed, decayed):
         weights = strategy.weights(None, th.zeros(1, n_heads, n_heads))
         assert th.equal(weights[:, perm][:, :, perm], weights)

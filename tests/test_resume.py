@@ -65,8 +65,8 @@ def _state(model: SOUP) -> dict:
             "policy": model.policy.state_dict(),
             "optimizers": {name: optimizer.state_dict()["state"] for name, optimizer in optimizers.items()},
             "buffer": (buffer.pos, buffer.full, buffer.observations, buffer.actions, buffer.rewards, buffer.masks),
-            "active_heads": model._active_heads,
-            "exploration_std": model.exploration_std,
+            "active_heads": model._active_pairs,
+            "current_noise_std": model.current_noise_std,
             "last_obs": model._last_obs,
         }
     )
@@ -125,7 +125,7 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     _assert_same(_state(resumed), recorded.snapshot)  # step, buffer and masks, networks, Adam and strategy state, noise
     assert resumed.replay_buffer.pos == steps and resumed.replay_buffer.masks.shape == (2000, 1, 3)
     assert float(resumed.policy.confidence.reward_baseline) != 0.0  # adaptive strategy's state came back
-    assert resumed.exploration_std == pytest.approx(max(0.05, 0.5 * 0.995**steps))
+    assert resumed.current_noise_std == pytest.approx(max(0.05, 0.5 * 0.995**steps))
     continued = Recorder()
     resumed.learn(more, callback=continued, reset_num_timesteps=False)
     assert resumed.num_timesteps == steps + more
@@ -146,7 +146,7 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     confidence_adam = faithful.policy.confidence.optimizer.state_dict()["state"]
     assert all(int(state["step"]) == confidence_updates for state in confidence_adam.values())
     assert faithful._n_updates == confidence_updates
-    assert faithful.exploration_std == pytest.approx(max(0.05, 0.5 * 0.995**sb3_steps))
+    assert faithful.current_noise_std == pytest.approx(max(0.05, 0.5 * 0.995**sb3_steps))
     faithful.learn(50, reset_num_timesteps=False)
     assert faithful.num_timesteps == sb3_steps + 50 and faithful.replay_buffer.pos == sb3_steps + 49
 

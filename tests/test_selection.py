@@ -4,7 +4,15 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_soup import SOUP, AdaptiveConfidence, ConfidenceStrategy, DecayedConfidence, FixedConfidence, NoConfidence
+from sb3_soup import (
+    SOUP,
+    AdaptiveConfidence,
+    ConfidenceStep,
+    ConfidenceStrategy,
+    DecayedConfidence,
+    FixedConfidence,
+    NoConfidence,
+)
 from sb3_soup.policies import e_actor, e_critic
 
 # V[i, k] = Q_i(s, a^k): critic head i scores candidate k (one observation, K = 3)
@@ -56,9 +64,9 @@ def test_decayed_confidence_goes_from_identity_to_uniform():
     strategy = _setup(DecayedConfidence(decay=0.5))
     assert th.allclose(strategy.weights(None, V)[0], th.eye(3))  # d = 1: each head judges its own candidate
     assert _select(strategy.weights(None, V)) == 2  # diag(V) = [1, 1, 3]
-    strategy.on_step(1)  # d = 0.5
+    strategy.observe(ConfidenceStep(None, None, None, th.zeros(1)))  # one env-step: d = 0.5
     assert th.allclose(strategy.weights(None, V)[0], th.tensor([[0.5, 0.25, 0.25], [0.25, 0.5, 0.25], [0.25, 0.25, 0.5]]))
-    strategy.on_step(10)  # 0.5 ** 11 < 1/3: floored at 1/K, i.e. uniform weights
+    strategy.observe(ConfidenceStep(None, None, None, th.zeros(10)))  # 10 envs: 0.5 ** 11 < 1/3, floored at 1/K (uniform)
     assert th.allclose(strategy.weights(None, V), th.full((1, 3, 3), 1 / 3))
     assert strategy.diagonal == pytest.approx(1 / 3)
 
@@ -97,9 +105,9 @@ def test_one_critic_head_means_unit_weights():
         assert th.equal(weights.expand(1, 1, 3), th.ones(1, 1, 3))
 
 
-def test_paired_strategies_refuse_unpaired_head_counts():
-    with pytest.raises(ValueError, match="n_critic_heads == n_actor_heads"):
-        _setup(FixedConfidence(0.5), n_critic=3, n_actor=2)
+def test_a_policy_refuses_unpaired_head_counts():
+    with pytest.raises(ValueError, match="actor head k is paired with critic head k"):
+        SOUP("MlpPolicy", "Pendulum-v1", n_actor_heads=2, n_critic_heads=3)
 
 
 def test_policy_select_matches_the_equation_on_its_own_networks():

@@ -79,7 +79,7 @@ def test_n_envs_2_and_set_env():
     env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
     model = SOUP("MlpPolicy", env, n_heads=3, seed=0, **SMALL)
     model.learn(200)
-    assert model.num_timesteps == 200 and model._active_heads.shape == (2,)
+    assert model.num_timesteps == 200 and model._active_pairs.shape == (2,)
     assert model.replay_buffer.masks.shape[1:] == (2, 3)
     model.set_env(make_vec_env("Pendulum-v1", n_envs=2, seed=1))
     model.learn(100, reset_num_timesteps=False)
@@ -116,7 +116,7 @@ def test_save_load_gives_identical_actions_and_state(tmp_path, confidence):
         assert float(loaded.policy.confidence.reward_baseline) == float(model.policy.confidence.reward_baseline)
     else:
         assert float(loaded.policy.confidence.n_steps) == 300  # one decay per env-step
-    assert loaded.exploration_std == model.exploration_std < model.noise_std
+    assert loaded.current_noise_std == model.current_noise_std < model.noise_std
     assert (loaded.n_heads, loaded.confidence, loaded.mask_prob) == (4, confidence, model.mask_prob)
     loaded.learn(100, reset_num_timesteps=False)
     assert loaded.num_timesteps == 400
@@ -165,9 +165,9 @@ def test_stochastic_predict_adds_the_scheduled_noise():
 def test_noise_std_decays_per_step_down_to_its_floor():
     model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, noise_std=0.4, noise_decay=0.99, noise_std_min=0.1, **SMALL)
     model.learn(60)
-    assert model.exploration_std == pytest.approx(max(0.1, 0.4 * 0.99**60))
+    assert model.current_noise_std == pytest.approx(max(0.1, 0.4 * 0.99**60))
     model.learn(200, reset_num_timesteps=False)
-    assert model.exploration_std == pytest.approx(0.1)
+    assert model.current_noise_std == pytest.approx(0.1)
 
 
 def test_non_box_action_spaces_are_refused():

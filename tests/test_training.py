@@ -40,7 +40,7 @@ def _batch(n_masks: int, masks: np.ndarray | None = None, seed: int = 0) -> Boot
 
 def _step(model: SOUP, data: BootstrappedReplayBufferSamples, pair: int = 0) -> tuple[list[float], list[float]]:
     """One gradient step of the model's scheme on ``data``, with ``pair`` as the episode's active head pair."""
-    model._active_heads = np.array([pair])
+    model._active_pairs = np.array([pair])
     model._n_updates += 1
     return model._gradient_step(data)
 
