@@ -10,6 +10,8 @@ The paper's model family (Figure 1, Table 1) as settings of one class, and the p
 | soup         | K           | K            | adaptive   | mask_prob   |
 """
 
+from importlib import resources
+from pathlib import Path
 from typing import Any
 
 from sb3_soup.validation import check, check_arguments
@@ -35,7 +37,8 @@ def paper_settings() -> dict[str, Any]:
     networks (actor (256, **128**), critic (256, 256, **128**), LeakyReLU), one randomly drawn head pair trained per
     episode on its own target, no delayed or smoothed updates. Not in the paper, our choices: Gaussian exploration
     noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per step down to 0.05, 1000 random steps first, and
-    the confidence network's lr 1e-4. K is the user's (the paper: 5 or 10), as is the preset.
+    the confidence network's lr 1e-4. K is the user's (the paper: 5 or 10), as are the preset and the mask probability
+    (not in the paper; the model's default, :data:`DEFAULT_MASK_PROB`).
 
     :return: SOUP constructor arguments
     """
@@ -51,13 +54,22 @@ def paper_settings() -> dict[str, Any]:
         target_q="own",
         policy_delay=1,
         target_policy_noise=0.0,
-        mask_prob=DEFAULT_MASK_PROB,
         noise_std=0.2,
         noise_decay=0.999995,
         noise_std_min=0.05,
         confidence_lr=1e-4,
         policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
     )
+
+
+def hyperparams_file(name: str = "soup") -> Path:
+    """
+    :param name: ``"soup"`` (the defaults' RL-Zoo entries) or ``"soup_paper"`` (the paper's settings)
+    :return: the installed YAML file (the repository's ``hyperparams/`` folder, installed as ``sb3_soup.hyperparams``)
+    """
+    if name not in ("soup", "soup_paper"):
+        raise ValueError(f"name must be 'soup' or 'soup_paper', got {name!r}")
+    return Path(str(resources.files("sb3_soup.hyperparams") / f"{name}.yml"))
 
 
 def normalize_preset_name(name: str) -> str:

@@ -3,7 +3,8 @@ SOUP in the RL Zoo (rl_zoo3), which has no plugin mechanism: register into its d
 
 ``register()`` adds ``"soup"`` to ``rl_zoo3.utils.ALGOS``, the optuna sampler and converter to
 ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER``/``HYPERPARAMS_CONVERTER`` (``-optimize``), and makes
-``ExperimentManager`` read ``sb3_soup/hyperparams/soup.yml`` when ``--algo soup`` comes without ``--conf-file``.
+``ExperimentManager`` read ``hyperparams/soup.yml`` (installed as ``sb3_soup.hyperparams``) when ``--algo soup``
+comes without ``--conf-file``.
 Every step is idempotent. The import hook installed by ``sb3_soup_zoo.pth`` (``_sb3_soup_zoo_hook``) calls
 ``on_import`` on each of those rl_zoo3 modules right after it executes, so ``python -m rl_zoo3.train --algo soup``
 works with no user action; ``python -m sb3_soup.train`` calls ``register()`` itself.
@@ -12,12 +13,13 @@ works with no user action; ``python -m sb3_soup.train`` calls ``register()`` its
 import functools
 import inspect
 import warnings
-from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from sb3_soup.presets import hyperparams_file
+
 ALGO_NAME = "soup"
-DEFAULT_CONF_FILE = Path(__file__).parent / "hyperparams" / "soup.yml"
+DEFAULT_CONF_FILE = hyperparams_file("soup")
 
 _WRAPPED_MARK = "_sb3_soup_default_conf"
 

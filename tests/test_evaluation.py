@@ -59,7 +59,7 @@ def _evaluated_run(spec, means: dict[int, float]) -> None:
 
 def test_report_writes_the_evaluation_statistics(tmp_path):
     out = tmp_path / "runs"
-    specs = build_grid("Hopper-v4", out, suite="benchmark", seeds=[0, 1, 2], timesteps=20)
+    specs = build_grid("Hopper-v4", out, suite="benchmark", models=["ddpg_zoo", "td3_zoo"], seeds=[0, 1, 2], timesteps=20)
     for spec in specs:
         good = spec.model == "td3_zoo"
         _evaluated_run(spec, {10: 100.0 * spec.seed, 20: (1000.0 if good else 10.0) + spec.seed})

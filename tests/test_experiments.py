@@ -36,6 +36,7 @@ from sb3_soup.experiments.runner import (
     run_lock,
     run_one,
 )
+from sb3_soup import SOUP
 from sb3_soup.presets import resolve_model
 
 # Two cheap models: SOUP's DDPG preset and SOUP (adaptive confidence), with small networks.
@@ -294,6 +295,7 @@ def test_every_suite_variant_builds_the_model_it_names():
         "fixed": (3, 3, "fixed", True),
         "decayed": (3, 3, "decayed", True),
         "adaptive": (3, 3, "adaptive", True),
+        "soup_paper": (3, 3, "adaptive", True),
     }
     env = DummyVecEnv([lambda: gym.make("Pendulum-v1")])
     small = parse_overrides(
@@ -306,6 +308,9 @@ def test_every_suite_variant_builds_the_model_it_names():
             name = next(variant for variant in SUITES[suite].variants if spec.variant in (variant, VARIANTS[variant].same_as))
             model = build_model(spec, env)
             settings = (model.n_actor_heads, model.n_critic_heads, model.confidence, model.mask_prob < 1)
+            if name == "soup_defaults":  # what SOUP("MlpPolicy", env) builds, whatever K the suite has
+                default = SOUP("MlpPolicy", env, _init_setup_model=False)
+                expected[name] = (default.n_actor_heads, default.n_critic_heads, default.confidence, default.mask_prob < 1)
             assert settings == expected[name], (suite, name)
     env.close()
 

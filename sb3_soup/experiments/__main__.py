@@ -62,7 +62,11 @@ def make_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default: 10)")
     run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
-    run.add_argument("--hyperparams-file", help="RL-Zoo style YAML (default: sb3_soup/hyperparams/soup.yml)")
+    run.add_argument(
+        "--hyperparams-file",
+        help="RL-Zoo style YAML for SOUP's models (default: hyperparams/soup_paper.yml for the paper's, soup.yml for "
+        "soup_defaults)",
+    )
     run.add_argument(
         "--ray-address",
         help="run as tasks on this Ray cluster ('auto', 'host:port', 'ray://host:10001', or 'local' for a private one); "

@@ -32,26 +32,13 @@ ZOO_ONLY_KEYS = frozenset(
     }
 )
 
-# SOUP's constructor defaults for the arguments the TD3/DDPG peers share (from API_CONTRACT.md; the paper's values).
-# Used when SOUP itself cannot be imported, and to give the SB3 peers the same values as SOUP.
-SOUP_SHARED_DEFAULTS: dict[str, Any] = {
-    "learning_rate": 1e-4,
-    "critic_learning_rate": 3e-4,
-    "buffer_size": 1_000_000,
-    "learning_starts": 1000,
-    "batch_size": 1024,
-    "tau": 1e-3,
-    "gamma": 0.99,
-    "train_freq": 1,
-    "gradient_steps": 1,
-    "noise_std": 0.2,
-}
-
 # Keys the SB3 peers (TD3, SB3's DDPG) take from the SOUP hyper-parameters; everything else is SOUP-only.
 PEER_KEYS = ("learning_rate", "buffer_size", "learning_starts", "batch_size", "tau", "gamma", "train_freq", "gradient_steps")
 PEER_NET_ARCH = [256, 256]
 DEFAULT_HEADS = 5
-HYPERPARAMS_FILE = Path(__file__).resolve().parent.parent / "hyperparams" / "soup.yml"
+# Where a variant's hyper-parameters come from (see Variant.source) and, for SOUP's, the RL-Zoo file of each
+SOURCES = ("paper", "defaults", "zoo")
+SOURCE_FILES = {"paper": "soup_paper", "defaults": "soup"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +54,11 @@ class Variant:
     :param same_as: another variant that trains exactly the same model (e.g. the confidence suite's ``none`` is the
         models suite's ``dbddpg``): its runs are shared, stored under that variant's name, as long as no
         ``--hyperparams`` override tells them apart
+    :param source: where its hyper-parameters come from: ``"paper"``, the paper's (:func:`sb3_soup.paper_settings` and
+        ``hyperparams/soup_paper.yml``'s entry for the env; the SB3 peers take the keys they share with SOUP, see
+        :func:`peer_hyperparams`); ``"defaults"``, SOUP's defaults (its constructor's, and ``hyperparams/soup.yml``'s
+        entry, what ``rl_zoo3.train --algo soup`` uses); or ``"zoo"``, the RL Zoo's own entry for the algorithm and the
+        env (``rl_zoo3/hyperparams/td3.yml``, ``ddpg.yml``), as the Zoo trains it
     """
 
     name: str
@@ -75,7 +67,7 @@ class Variant:
     settings: dict[str, Any]
     uses_heads: bool = True
     same_as: str | None = None
-    source: str = "soup"
+    source: str = "paper"
 
 
 VARIANTS: dict[str, Variant] = {
@@ -93,6 +85,9 @@ VARIANTS: dict[str, Variant] = {
         # batch 256, tau 0.005, N(0, 0.1) noise, 10k random steps, net_arch [400, 300]).
         Variant("ddpg_zoo", "sb3_ddpg", "DDPG (RL Zoo)", {}, uses_heads=False, source="zoo"),
         Variant("td3_zoo", "td3", "TD3 (RL Zoo)", {}, uses_heads=False, source="zoo"),
+        # The benchmark suite's SOUPs: with its defaults (what a user gets), and the paper's (the models suite's soup)
+        Variant("soup_defaults", "soup", "SOUP (defaults)", {}, uses_heads=False, source="defaults"),
+        Variant("soup_paper", "soup", "SOUP, the paper's (K={K})", {"preset": "soup"}, same_as="soup"),
         # The confidence suite: DBDDPG (K actor and K critic heads, bootstrap masks) with each confidence strategy.
         # "none" is the dbddpg preset and "adaptive" the soup preset, so they share the models suite's runs. A preset
         # fixes the confidence, so "fixed" and "decayed" are given without one: SOUP's defaults are then K x K heads
@@ -128,7 +123,7 @@ SUITES: dict[str, Suite] = {
     # Figure 7 (and Table 1's K=10 columns): Speed Up against DDPG when the folder has it (the models suite's runs).
     "heads": Suite(("soup",), (3, 5, 10), "ddpg"),
     # What peers publish: deterministic evaluations of SOUP against SB3's DDPG and TD3 as the RL Zoo trains them.
-    "benchmark": Suite(("ddpg_zoo", "td3_zoo"), (DEFAULT_HEADS,), "ddpg_zoo"),
+    "benchmark": Suite(("soup_defaults", "soup_paper", "ddpg_zoo", "td3_zoo"), (DEFAULT_HEADS,), "ddpg_zoo"),
 }
 
 
@@ -193,57 +188,75 @@ class RunSpec:
 
 def soup_defaults() -> dict[str, Any]:
     """
-    :return: SOUP's constructor defaults for the keys in :data:`SOUP_SHARED_DEFAULTS`, read from the class when
-        it is importable, else the contract's values.
+    :return: SOUP's constructor defaults that define a run (not those of logging and devices), ``None``s left out,
+        so that a run's ``spec.json`` records every setting it trained with
     """
-    try:
-        import inspect
+    import inspect
 
-        from sb3_soup import SOUP  # type: ignore[attr-defined]
-    except ImportError:
-        return dict(SOUP_SHARED_DEFAULTS)
-    signature = inspect.signature(SOUP.__init__)
-    defaults = dict(SOUP_SHARED_DEFAULTS)
-    for key in defaults:
-        parameter = signature.parameters.get(key)
-        if parameter is not None and parameter.default is not inspect.Parameter.empty:
-            defaults[key] = parameter.default
-    return defaults
+    from sb3_soup import SOUP
+
+    ignored = {"self", "policy", "env", "device", "verbose", "tensorboard_log", "seed", "_init_setup_model", "check_finite"}
+    return {
+        name: parameter.default
+        for name, parameter in inspect.signature(SOUP.__init__).parameters.items()
+        if name not in ignored and parameter.default is not inspect.Parameter.empty and parameter.default is not None
+    }
 
 
-def fallback_hyperparams(env_id: str) -> dict[str, Any]:
+def fallback_hyperparams(env_id: str, source: str) -> dict[str, Any]:
     """
-    Hyper-parameters for an environment that ``soup.yml`` does not list: SOUP's defaults (the paper's values),
-    with a smaller buffer and batch for the classic-control tasks so that they stay cheap.
+    Hyper-parameters for an environment that the source's file does not list: none for SOUP's defaults; for the
+    paper's (sized for MuJoCo), a smaller buffer and batch on the classic-control tasks so that they stay cheap.
 
     :param env_id: the environment id
+    :param source: ``"paper"`` or ``"defaults"``
     :return: the constructor arguments
     """
-    params: dict[str, Any] = {}
-    if not any(env_id.startswith(prefix) for prefix in ("Hopper", "Walker2d", "HalfCheetah", "Ant", "Humanoid", "Swimmer")):
-        params.update(batch_size=256, buffer_size=200_000)
-    return params
+    mujoco = any(env_id.startswith(prefix) for prefix in ("Hopper", "Walker2d", "HalfCheetah", "Ant", "Humanoid", "Swimmer"))
+    return {} if source == "defaults" or mujoco else dict(batch_size=256, buffer_size=200_000)
 
 
-def load_hyperparams(env_id: str, path: str | os.PathLike | None = None) -> dict[str, Any]:
+def hyperparams_file(source: str, path: str | os.PathLike | None = None) -> Path:
+    """
+    :param source: ``"paper"`` or ``"defaults"``
+    :param path: the user's file (``--hyperparams-file``), which replaces the source's own
+    :return: the RL-Zoo file SOUP's hyper-parameters of that source are read from
+    """
+    from sb3_soup.presets import hyperparams_file as installed_file
+
+    return Path(path) if path is not None else installed_file(SOURCE_FILES[source])
+
+
+def load_hyperparams(env_id: str, path: str | os.PathLike | None = None, source: str = "paper") -> dict[str, Any]:
     """
     The SOUP hyper-parameters of an environment from an RL-Zoo style file, without the zoo-only keys.
 
     :param env_id: the environment id (a top-level key of the file)
-    :param path: the YAML file; default: ``sb3_soup/hyperparams/soup.yml``
-    :return: constructor arguments (``policy_kwargs`` left as the file gives it); the fallback when the file or
-        the environment's entry is missing
+    :param path: the YAML file; default: the source's (``hyperparams/soup_paper.yml`` or ``hyperparams/soup.yml``)
+    :param source: ``"paper"`` or ``"defaults"``
+    :return: constructor arguments (``policy_kwargs`` left as the file gives it); the fallback when the env has no entry
     """
-    file = Path(path) if path is not None else HYPERPARAMS_FILE
+    file = hyperparams_file(source, path)
     if not file.is_file():
-        if path is not None:
-            raise FileNotFoundError(f"Hyper-parameter file not found: {file}")
-        return fallback_hyperparams(env_id)
+        raise FileNotFoundError(f"Hyper-parameter file not found: {file}")
     with open(file) as stream:
         entries = yaml.safe_load(stream) or {}
     if env_id not in entries:
-        return fallback_hyperparams(env_id)
+        return fallback_hyperparams(env_id, source)
     return {key: value for key, value in dict(entries[env_id]).items() if key not in ZOO_ONLY_KEYS}
+
+
+def base_hyperparams(source: str, env_id: str, path: str | os.PathLike | None = None) -> dict[str, Any]:
+    """
+    :param source: ``"paper"`` or ``"defaults"`` (see :attr:`Variant.source`)
+    :param env_id: the environment id
+    :param path: the user's hyper-parameter file, if any
+    :return: SOUP's constructor arguments for the env before a variant's own settings
+    """
+    from sb3_soup import paper_settings
+
+    base = paper_settings() if source == "paper" else soup_defaults()
+    return {**base, **load_hyperparams(env_id, path, source)}
 
 
 def parse_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
@@ -292,7 +305,7 @@ def peer_hyperparams(params: dict[str, Any]) -> dict[str, Any]:
     """
     peer = {key: params[key] for key in PEER_KEYS if key in params}
     peer["policy_kwargs"] = {"net_arch": list(PEER_NET_ARCH)}
-    peer["noise_std"] = params.get("noise_std", SOUP_SHARED_DEFAULTS["noise_std"])
+    peer["noise_std"] = params["noise_std"]
     return peer
 
 
@@ -315,8 +328,10 @@ def build_grid(
     """
     Expand a suite into its runs.
 
-    Precedence of hyper-parameters, lowest first: SOUP's defaults, the env's ``soup.yml`` entry (or the fallback),
-    the variant's own settings (preset, confidence, K), the ``*`` overrides, the variant's/model's overrides.
+    Precedence of hyper-parameters, lowest first: the variant's source (the paper's settings or SOUP's defaults, then the
+    env's entry in the source's file, or the fallback), the variant's own settings (preset, confidence, K), the ``*``
+    overrides, the variant's/model's overrides. The RL Zoo's peers (``source="zoo"``) take their own entry and the
+    overrides aimed at them by name only.
     A variant that is :attr:`Variant.same_as` another (``none`` = ``dbddpg``, ``adaptive`` = ``soup``) is stored as
     that one (same folder, name and label), so that suites run into one folder share the run instead of training it
     twice; overrides aimed at it by name make it a run of its own (``none-k5``).
@@ -327,9 +342,9 @@ def build_grid(
     :param models: narrow the suite to these variants (any name in :data:`VARIANTS` is accepted)
     :param heads: the head counts K (default: the suite's)
     :param seeds: the seeds
-    :param timesteps: steps per run (default: the yml's ``n_timesteps``, else 100k)
+    :param timesteps: steps per run (default: the ``n_timesteps`` of the env's entry in the variants' files, else 100k)
     :param overrides: from :func:`parse_overrides`
-    :param hyperparams_file: the RL-Zoo style file to read
+    :param hyperparams_file: an RL-Zoo style file to read instead of the variants' own (see :attr:`Variant.source`)
     :param checkpoint_freq: checkpoint every this many steps
     :param stop_after: see :class:`RunSpec`
     :param eval_freq: see :class:`RunSpec`
@@ -351,14 +366,16 @@ def build_grid(
     if name is not None and not re.fullmatch(r"[A-Za-z0-9_.+-]+", name):
         raise ValueError(f"a name is a folder name: letters, digits and _ . + - only, got {name!r}")
     overrides = overrides or {}
-    base = {**soup_defaults(), **load_hyperparams(env_id, hyperparams_file)}
+    sources = {VARIANTS[variant_name].source for variant_name in names} - {"zoo"}
+    bases = {source: base_hyperparams(source, env_id, hyperparams_file) for source in sources}
     if timesteps is None:
-        timesteps = int(_zoo_timesteps(env_id, hyperparams_file) or 100_000)
+        budgets = [_zoo_timesteps(env_id, hyperparams_file, source) for source in sorted(sources)]
+        timesteps = int(max([budget for budget in budgets if budget is not None], default=100_000))
     specs = []
     for variant_name in names:
         variant = VARIANTS[variant_name]
         for n_heads in head_counts if variant.uses_heads else [None]:
-            stored, params = _stored_variant(variant, env_id, n_heads, base, overrides)
+            stored, params = _stored_variant(variant, env_id, n_heads, bases, overrides)
             model = name or _model_id(stored.name, n_heads)
             label = name or _format(stored.label, n_heads)
             for seed in seeds:
@@ -417,7 +434,11 @@ def zoo_hyperparams(algo: str, env_id: str) -> dict[str, Any]:
 
 
 def variant_params(
-    variant: Variant, env_id: str, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
+    variant: Variant,
+    env_id: str,
+    n_heads: int | None,
+    bases: dict[str, dict[str, Any]],
+    overrides: dict[str, dict[str, Any]],
 ) -> dict[str, Any]:
     """
     A variant's constructor arguments.
@@ -425,33 +446,37 @@ def variant_params(
     :param variant: the variant
     :param env_id: the environment id
     :param n_heads: its K (``None`` for single-head variants)
-    :param base: SOUP's defaults updated with the env's hyper-parameters
+    :param bases: source -> SOUP's hyper-parameters for the env (:func:`base_hyperparams`), for the SOUP-sourced variants
     :param overrides: from :func:`parse_overrides`
     :return: the resolved hyper-parameters
     """
     model = _model_id(variant.name, n_heads)
-    params = dict(base)
+    if variant.source == "zoo":
+        return {**zoo_hyperparams(variant.algo, env_id), **overrides.get(variant.name, {}), **overrides.get(model, {})}
+    params = dict(bases[variant.source])
     params.update({key: _format(value, n_heads) for key, value in variant.settings.items()})
     if n_heads is not None:
         params["n_heads"] = n_heads
     params.update(overrides.get("*", {}))
     params.update(overrides.get(variant.name, {}))
     params.update(overrides.get(model, {}))
-    if variant.source == "zoo":
-        return {**zoo_hyperparams(variant.algo, env_id), **overrides.get(variant.name, {}), **overrides.get(model, {})}
     if variant.algo != "soup":
         params = {**peer_hyperparams(params), **overrides.get(variant.name, {}), **overrides.get(model, {})}
     return params
 
 
 def _stored_variant(
-    variant: Variant, env_id: str, n_heads: int | None, base: dict[str, Any], overrides: dict[str, dict[str, Any]]
+    variant: Variant,
+    env_id: str,
+    n_heads: int | None,
+    bases: dict[str, dict[str, Any]],
+    overrides: dict[str, dict[str, Any]],
 ) -> tuple[Variant, dict[str, Any]]:
     """The variant a run is stored as (``same_as`` when the settings agree) and its hyper-parameters."""
-    params = variant_params(variant, env_id, n_heads, base, overrides)
+    params = variant_params(variant, env_id, n_heads, bases, overrides)
     if variant.same_as is not None:
         twin = VARIANTS[variant.same_as]
-        if variant_params(twin, env_id, n_heads, base, overrides) == params:
+        if variant_params(twin, env_id, n_heads, bases, overrides) == params:
             return twin, params
     return variant, params
 
@@ -480,8 +505,8 @@ def suite_columns(spec: RunSpec, extra_heads: dict[str, Sequence[int]] | None = 
     return columns
 
 
-def _zoo_timesteps(env_id: str, path: str | os.PathLike | None) -> float | None:
-    file = Path(path) if path is not None else HYPERPARAMS_FILE
+def _zoo_timesteps(env_id: str, path: str | os.PathLike | None, source: str) -> float | None:
+    file = hyperparams_file(source, path)
     if not file.is_file():
         return None
     with open(file) as stream:
