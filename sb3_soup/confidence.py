@@ -221,11 +221,15 @@ class AdaptiveConfidence(ConfidenceStrategy):
     """
     Self-adaptive confidence (the paper's "SAC", eq. 8): ``W[i, k] = c_i(s)`` from a confidence network,
     trained by REINFORCE on the selections it made: the selection is read as the categorical policy
-    ``pi_C(k | s) = softmax(v / temperature)[k]`` with ``v = sum_i c_i(s) V[i, k]`` (V detached), and
+    ``pi_C(k | s) = softmax(v / temperature)[k]`` with ``v = sum_i c_i(s) V[i, k]`` (V detached) (or, with
+    ``temperature_mode="relative"``, ``softmax((v - mean_k v) / (temperature * std_k v))``, which does not depend on
+    the scale of the Q values), and
     ``log pi_C(k_t | s_t) * (r_t - b)`` is ascended, b a running mean of the reward (or 0 without baseline).
 
     :param lr: learning rate of the confidence network (Adam)
     :param temperature: softmax temperature of the selection policy, > 0
+    :param temperature_mode: "absolute" (the temperature divides the E-Q values, whose scale is the reward's) or
+        "relative" (it divides them in units of their spread across the candidates of the state)
     :param baseline: subtract a running-mean reward baseline (False: the paper's raw reward)
     :param baseline_rate: update rate of the running mean, in (0, 1]
     :param net_arch: hidden sizes of the confidence network (default [256, 128])
@@ -240,6 +244,7 @@ class AdaptiveConfidence(ConfidenceStrategy):
         lr: float = 1e-4,
         temperature: float = 1.0,
         baseline: bool = True,
+        temperature_mode: str = "absolute",
         baseline_rate: float = 0.01,
         net_arch: list[int] | None = None,
         eps: float = 1e-3,
@@ -248,6 +253,7 @@ class AdaptiveConfidence(ConfidenceStrategy):
         super().__init__()
         self.lr = check("confidence_lr", lr)
         self.temperature = check("temperature", temperature)
+        self.temperature_mode = check("temperature_mode", temperature_mode)
         self.baseline = check("confidence_baseline", baseline)
         self.baseline_rate = check("baseline_rate", baseline_rate)
         self.eps = check("eps", eps)
@@ -281,6 +287,16 @@ class AdaptiveConfidence(ConfidenceStrategy):
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         return self.confidence(obs).unsqueeze(-1)  # (B, Kc, 1): the same c_i for every candidate
 
+    def selection_logits(self, e_q: th.Tensor) -> th.Tensor:
+        """
+        :param e_q: ``(N, Ka)`` E-Q values of the candidates
+        :return: ``(N, Ka)`` the logits of the selection policy ``pi_C``
+        """
+        if self.temperature_mode == "absolute":
+            return e_q / self.temperature
+        centered = e_q - e_q.mean(dim=1, keepdim=True)
+        return centered / (self.temperature * e_q.std(dim=1, unbiased=False, keepdim=True).clamp(min=1e-6))
+
     def observe(self, step: ConfidenceStep) -> None:
         if step.q_matrix is None:
             return  # no selection: nothing to learn from
@@ -307,14 +323,15 @@ class AdaptiveConfidence(ConfidenceStrategy):
         """Eq. 8: one REINFORCE step on the selections ``chosen`` made from ``q_matrices``, and the ``rewards`` after them."""
         confidence = self.confidence(observations)  # (N, Kc)
         e_q = (confidence.unsqueeze(-1) * q_matrices).sum(dim=1)  # (N, Ka)
-        log_prob = F.log_softmax(e_q / self.temperature, dim=1)  # (N, Ka)
+        logits = self.selection_logits(e_q)  # (N, Ka)
+        log_prob = F.log_softmax(logits, dim=1)
         chosen_log_prob = log_prob.gather(1, chosen.long().unsqueeze(1)).squeeze(1)  # (N,)
         rewards = rewards.float()
         advantage = rewards - self.reward_baseline if self.baseline else rewards  # (N,)
         loss = -(chosen_log_prob * advantage).mean()
         with th.no_grad():  # how decided the selection policy is: near 1 saturated, near 1/Ka flat
             max_prob = log_prob.max(dim=1).values.exp().median()
-            spread = (e_q / self.temperature).std(dim=1, unbiased=False).median()
+            spread = logits.std(dim=1, unbiased=False).median()
         assert self.optimizer is not None, "setup() builds the optimizer"
         self.optimizer.zero_grad()
         loss.backward()
@@ -365,7 +382,10 @@ def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> Co
         "decayed": lambda: DecayedConfidence(decay=kwargs.get("decay", 0.9995)),
         "ucb": lambda: UCBConfidence(ucb_lambda=kwargs.get("ucb_lambda", 1.0)),
         "adaptive": lambda: AdaptiveConfidence(
-            lr=kwargs.get("lr", 1e-4), temperature=kwargs.get("temperature", 1.0), baseline=kwargs.get("baseline", True)
+            lr=kwargs.get("lr", 1e-4),
+            temperature=kwargs.get("temperature", 1.0),
+            baseline=kwargs.get("baseline", True),
+            temperature_mode=kwargs.get("temperature_mode", "absolute"),
         ),
     }
     return builders[confidence]()

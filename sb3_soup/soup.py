@@ -60,6 +60,7 @@ _STRUCTURAL_ARGUMENTS = (
     "alpha",
     "decay",
     "temperature",
+    "temperature_mode",
     "confidence_lr",
     "confidence_baseline",
     "ucb_lambda",
@@ -108,6 +109,8 @@ class SOUP(OffPolicyAlgorithm):
     :param alpha: fixed confidence of a critic head in its own candidate (``confidence="fixed"``), in (0, 1)
     :param decay: per-step decay of the confidence (``confidence="decayed"``), in (0, 1]
     :param temperature: softmax temperature of the selection policy trained by REINFORCE (``"adaptive"``), > 0
+    :param temperature_mode: "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness depends on the
+        scale of Q); "relative": the E-Q values in units of their spread across the state's candidates
     :param confidence_lr: learning rate of the confidence network (``"adaptive"``)
     :param confidence_baseline: subtract a running-mean reward baseline in REINFORCE (False: the paper's raw reward)
     :param ucb_lambda: weight of the disagreement bonus of the optimistic selection (``confidence="ucb"``): while
@@ -176,6 +179,7 @@ class SOUP(OffPolicyAlgorithm):
         alpha: float = 0.5,
         decay: float = 0.9995,
         temperature: float = 1.0,
+        temperature_mode: str = "absolute",
         confidence_lr: float = 1e-4,
         confidence_baseline: bool = True,
         ucb_lambda: float = 1.0,
@@ -214,6 +218,7 @@ class SOUP(OffPolicyAlgorithm):
             alpha=alpha,
             decay=decay,
             temperature=temperature,
+            temperature_mode=temperature_mode,
             confidence_lr=confidence_lr,
             confidence_baseline=confidence_baseline,
             ucb_lambda=ucb_lambda,
@@ -265,6 +270,7 @@ class SOUP(OffPolicyAlgorithm):
         self.alpha: float = args["alpha"]
         self.decay: float = args["decay"]
         self.temperature: float = args["temperature"]
+        self.temperature_mode: str = args["temperature_mode"]
         self.confidence_lr: float = args["confidence_lr"]
         self.confidence_baseline: bool = args["confidence_baseline"]
         self.ucb_lambda: float = args["ucb_lambda"]
@@ -291,6 +297,7 @@ class SOUP(OffPolicyAlgorithm):
                 decay=self.decay,
                 lr=self.confidence_lr,
                 temperature=self.temperature,
+                temperature_mode=self.temperature_mode,
                 baseline=self.confidence_baseline,
                 ucb_lambda=self.ucb_lambda,
             ),

@@ -236,6 +236,7 @@ RULES: dict[str, Rule] = {
     "alpha": number(0.0, 1.0, True, True, "fixed confidence of a head in its own candidate"),
     "decay": number(0.0, 1.0, True, False, "per-step decay of the decayed confidence"),
     "temperature": number(0.0, math.inf, True, True, "softmax temperature of the selection"),
+    "temperature_mode": choice(("absolute", "relative"), "the temperature divides the E-Q values, or their spread"),
     "confidence_lr": number(0.0, math.inf, True, True, "confidence network learning rate"),
     "confidence_baseline": boolean("running-mean reward baseline in REINFORCE"),
     "ucb_lambda": number(0.0, math.inf, False, True, "weight of the UCB bonus"),

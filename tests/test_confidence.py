@@ -158,3 +158,12 @@ def test_adaptive_confidence_logs_how_decided_its_selection_policy_is():
     )
     assert 1 / 3 <= logs["selection_max_prob"] <= 1.0
     assert logs["selection_logit_spread"] > 0
+
+
+def test_a_relative_temperature_makes_the_selection_policy_independent_of_the_scale_of_q():
+    absolute, relative = _strategy(n_heads=3), _strategy(n_heads=3, temperature_mode="relative")
+    e_q = th.tensor([[1.0, 2.0, 4.0]])
+    th.testing.assert_close(relative.selection_logits(100.0 * e_q), relative.selection_logits(e_q))
+    assert relative.selection_logits(e_q).std(unbiased=False) == pytest.approx(1.0)  # unit spread at temperature 1
+    assert th.softmax(absolute.selection_logits(100.0 * e_q), dim=1).max() > 0.99  # saturated by the scale
+    assert th.equal(relative.selection_logits(th.ones(1, 3)), th.zeros(1, 3))  # equal candidates: uniform

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sb3_soup import SOUP
 from sb3_soup.experiments import checkpointing, logs
 from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
@@ -36,7 +37,6 @@ from sb3_soup.experiments.runner import (
     run_lock,
     run_one,
 )
-from sb3_soup import SOUP
 from sb3_soup.presets import resolve_model
 
 # Two cheap models: SOUP's DDPG preset and SOUP (adaptive confidence), with small networks.
