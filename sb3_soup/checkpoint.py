@@ -32,7 +32,6 @@ What stays inexact, and why:
 """
 
 import dataclasses
-import io
 import os
 import pickle
 import pickletools
@@ -43,28 +42,25 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
-import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CheckpointCallback
-from stable_baselines3.common.monitor import ResultsWriter
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_normalize
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
 
-from sb3_soup.saving import capture_rng_state, restore_rng_state
+from sb3_soup.persistence import (
+    TMP_MARK,
+    EnvStateError,
+    atomic_write,
+    capture_rng_state,
+    get_env_state,
+    restore_rng_state,
+    set_env_state,
+)
 
 TRAINING_STATE_FORMAT = 1
 """Format of the training-state files this version writes and reads."""
-
-# Live objects that stay with the running environment (open log files): never saved, never replaced
-_KEPT_LIVE: tuple[type, ...] = (ResultsWriter, io.IOBase)
-_TMP_MARK = ".tmp-"
-
-
-class EnvStateError(Exception):
-    """The environment's state cannot be saved (or restored into this environment)."""
 
 
 class StopTraining(Exception):
@@ -74,99 +70,7 @@ class StopTraining(Exception):
     """
 
 
-# ---------------------------------------------------------------- environment state
-
-
-def _qualified_name(obj: Any) -> str:
-    return f"{type(obj).__module__}.{type(obj).__qualname__}"
-
-
-def _vec_layers(vec_env: VecEnv) -> list[VecEnv]:
-    """The VecEnv wrappers, outermost first, then the base VecEnv."""
-    layers = [vec_env]
-    while isinstance(layers[-1], VecEnvWrapper):
-        layers.append(layers[-1].venv)
-    return layers
-
-
-def _env_layers(env: gym.Env) -> list[Any]:
-    """The gymnasium wrappers of a sub-environment, outermost first, then the unwrapped env."""
-    layers = [env]
-    while isinstance(layers[-1], gym.Wrapper):
-        layers.append(layers[-1].env)
-    return layers
-
-
-def _layer_state(layer: Any, links: tuple[str, ...]) -> dict[str, Any]:
-    """A layer's attributes, without its links to the layers below and without live log files."""
-    return {key: value for key, value in vars(layer).items() if key not in links and not isinstance(value, _KEPT_LIVE)}
-
-
-def _structure(vec_env: VecEnv) -> dict[str, Any]:
-    layers = _vec_layers(vec_env)
-    base = layers[-1]
-    envs = base.envs if isinstance(base, DummyVecEnv) else []
-    return {
-        "vec_layers": [_qualified_name(layer) for layer in layers],
-        "envs": [[_qualified_name(layer) for layer in _env_layers(env)] for env in envs],
-    }
-
-
-def get_env_state(vec_env: VecEnv) -> bytes:
-    """
-    The state of a ``DummyVecEnv`` (and of the VecEnv wrappers around it): every attribute of every layer, down to
-    each sub-environment's simulator, pickled (open log files such as ``Monitor``'s are left out).
-
-    Layers are saved attribute by attribute, not through their own pickling, which some envs restrict to their
-    constructor arguments (gymnasium's ``EzPickle``, used by MuJoCo envs, would lose the simulator state).
-
-    :param vec_env: the environment
-    :return: the state, for :func:`set_env_state`
-    :raises EnvStateError: when it is not a ``DummyVecEnv`` or a layer does not pickle
-    """
-    layers = _vec_layers(vec_env)
-    base = layers[-1]
-    if not isinstance(base, DummyVecEnv):
-        raise EnvStateError(
-            f"only DummyVecEnv environments can be saved (their envs live in this process), not {type(base).__name__}"
-        )
-    state = {
-        "structure": _structure(vec_env),
-        "vec_layers": [_layer_state(layer, ("venv", "class_attributes")) for layer in layers[:-1]],
-        "base": _layer_state(base, ("envs",)),
-        "envs": [[_layer_state(layer, ("env",)) for layer in _env_layers(env)] for env in base.envs],
-    }
-    try:
-        return cloudpickle.dumps(state)
-    except Exception as error:
-        raise EnvStateError(f"the environment's state does not pickle: {type(error).__name__}: {error}") from error
-
-
-def set_env_state(vec_env: VecEnv, env_state: bytes) -> None:
-    """
-    Put an environment back in a state saved by :func:`get_env_state`. It must be built the same way (same wrappers,
-    same number of envs); live log files (``Monitor``'s) stay those of ``vec_env``.
-
-    :param vec_env: the environment, e.g. freshly made
-    :param env_state: from :func:`get_env_state`
-    :raises EnvStateError: when ``vec_env`` is not built like the saved one
-    """
-    state = pickle.loads(env_state)
-    structure = _structure(vec_env)
-    if structure != state["structure"]:
-        raise EnvStateError(
-            f"the environment is not built like the saved one: saved {state['structure']}, given {structure} "
-            "(VecEnv wrappers outermost first, then each env's wrappers)"
-        )
-    layers = _vec_layers(vec_env)
-    for layer, saved in zip(layers[:-1], state["vec_layers"]):
-        vars(layer).update(saved)
-    base = layers[-1]
-    assert isinstance(base, DummyVecEnv)
-    vars(base).update(state["base"])
-    for env, saved_layers in zip(base.envs, state["envs"]):
-        for layer, saved in zip(_env_layers(env), saved_layers):
-            vars(layer).update(saved)
+# ---------------------------------------------------------------- training state (random generators + environment)
 
 
 def _check_at_boundary(model: BaseAlgorithm, vec_env: VecEnv) -> None:
@@ -184,24 +88,6 @@ def _check_at_boundary(model: BaseAlgorithm, vec_env: VecEnv) -> None:
                 "the environment has stepped past the model's last observation (saved in the middle of a step, e.g. from "
                 "a callback's _on_step): save from _on_rollout_start or after learn() returned"
             )
-
-
-# ---------------------------------------------------------------- training state (random generators + environment)
-
-
-def _atomic_write(path: str | os.PathLike, write: Callable[[Path], Any]) -> None:
-    """``write(tmp)`` then rename ``tmp`` to ``path`` (after an fsync): ``path`` is complete or absent, never partial."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}{_TMP_MARK}{os.getpid()}")
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as file:
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _dump_pickle(data: Any) -> Callable[[Path], None]:
@@ -243,7 +129,7 @@ def save_training_state(model: BaseAlgorithm, path: str | os.PathLike) -> bool:
         "env": env_state,
         "env_missing_because": reason,
     }
-    _atomic_write(path, _dump_pickle(state))
+    atomic_write(path, _dump_pickle(state))
     return env_state is not None
 
 
@@ -311,12 +197,12 @@ def save_resumable(
     :param vecnormalize_path: the ``VecNormalize`` statistics (when the env has them), or None
     :return: whether the checkpoint holds the environment's state (an exact resume)
     """
-    _atomic_write(model_path, model.save)
+    atomic_write(model_path, model.save)
     if replay_buffer_path is not None and isinstance(model, OffPolicyAlgorithm) and model.replay_buffer is not None:
-        _atomic_write(replay_buffer_path, model.save_replay_buffer)
+        atomic_write(replay_buffer_path, model.save_replay_buffer)
     vec_normalize = model.get_vec_normalize_env()
     if vecnormalize_path is not None and vec_normalize is not None:
-        _atomic_write(vecnormalize_path, lambda path: vec_normalize.save(str(path)))
+        atomic_write(vecnormalize_path, lambda path: vec_normalize.save(str(path)))
     if training_state_path is None:
         return False
     return save_training_state(model, training_state_path)
@@ -516,7 +402,7 @@ class ResumableCheckpointCallback(CheckpointCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.last_saved = int(self.model.num_timesteps)
-        for stale in Path(self.save_path).glob(f".{self.name_prefix}_*{_TMP_MARK}*"):  # from a process killed mid-save
+        for stale in Path(self.save_path).glob(f".{self.name_prefix}_*{TMP_MARK}*"):  # from a process killed mid-save
             stale.unlink(missing_ok=True)
 
     def _on_step(self) -> bool:

@@ -37,16 +37,10 @@ from sb3_soup.confidence import ConfidenceRollout, ConfidenceStrategy, check_str
 from sb3_soup.losses import actor_loss, critic_loss, td_target
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
+from sb3_soup.persistence import capture_rng_state, restore_rng_state
 from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads
 from sb3_soup.presets import normalize_preset_name, resolve_preset
-from sb3_soup.saving import (
-    SAVE_FORMAT_VERSION,
-    capture_rng_state,
-    check_saved_format,
-    package_version,
-    read_saved_data,
-    restore_rng_state,
-)
+from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data
 from sb3_soup.validation import check_bool, check_choice, check_float, check_int, check_learning_rate
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")

@@ -20,15 +20,13 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_soup import SOUP
 from sb3_soup.checkpoint import (
-    EnvStateError,
     ResumableCheckpointCallback,
     find_checkpoints,
-    get_env_state,
     latest_checkpoint,
     load_checkpoint,
     save_training_state,
-    set_env_state,
 )
+from sb3_soup.persistence import EnvStateError, get_env_state, set_env_state
 
 SCRIPT = Path(__file__).with_name("resume_run.py")
 
