@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from sb3_soup import SOUP
-from sb3_soup.experiments import checkpointing, logs
+from sb3_soup.checkpoint import latest_checkpoint
+from sb3_soup.experiments import logs
 from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
 from sb3_soup.experiments.metrics import add_speed_ups, first_crossing, model_metrics, running_average, speed_up
@@ -28,6 +29,7 @@ from sb3_soup.experiments.parallel import available_cores, run_local
 from sb3_soup.experiments.progress import ProgressBoard, progress_mode
 from sb3_soup.experiments.report import collect_runs, make_report, write_grid
 from sb3_soup.experiments.runner import (
+    CHECKPOINT_DIR,
     DONE_FILE,
     ERROR_FILE,
     STATUS_FILE,
@@ -323,35 +325,12 @@ def test_hyperparams_file(tmp_path):
     assert specs[0].timesteps == 1_000_000 and specs[0].hyperparams["n_heads"] == 3  # the suite's K wins
 
 
-# ---------------------------------------------------------------- checkpoints and logs
-
-
-def test_checkpoint_roundtrip(tmp_path):
-    import gymnasium as gym
-    from stable_baselines3 import TD3
-    from stable_baselines3.common.vec_env import DummyVecEnv
-
-    env = DummyVecEnv([lambda: logs.monitor_env(gym.make("Pendulum-v1"), tmp_path)])
-    model = TD3("MlpPolicy", env, learning_starts=20, batch_size=16, policy_kwargs={"net_arch": [16]}, seed=0)
-    model.learn(60)
-    assert checkpointing.latest_checkpoint(tmp_path) is None
-    first = checkpointing.save_checkpoint(model, tmp_path, {"episodes": 0})
-    model.learn(40, reset_num_timesteps=False)
-    second = checkpointing.save_checkpoint(model, tmp_path, {"episodes": 0})
-    latest = checkpointing.latest_checkpoint(tmp_path)
-    assert latest is not None and latest.step == second.step == 100 and not first.path.exists()
-    assert latest.state == {"episodes": 0, "num_timesteps": 100}
-    resumed = checkpointing.resume(latest, TD3, env)
-    assert resumed.num_timesteps == 100 and resumed.replay_buffer.size() == 100
-    assert checkpointing.remaining_steps(resumed, 150) == 50
-    resumed.learn(checkpointing.remaining_steps(resumed, 150), reset_num_timesteps=False)
-    assert resumed.num_timesteps == 150
-    env.close()
+# ---------------------------------------------------------------- logs
 
 
 def test_logs_continue_after_truncation(tmp_path):
     (tmp_path / logs.MONITOR_FILE).write_text('#{"t_start": 0}\nr,l,t\n1.0,10,0.1\n2.0,10,0.2\n3.0,10,0.3\n')
-    logs.truncate_monitor(tmp_path, 2)
+    logs.truncate_monitor(tmp_path, 25)  # the episodes that ended by step 25: at steps 10 and 20
     assert logs.count_episodes(tmp_path) == 2
     assert list(logs.read_monitor(tmp_path)["r"]) == [1.0, 2.0]
 
@@ -503,9 +482,10 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     models = MODELS.split(",")
     run_dirs = sorted(path.parent for path in out.glob("*/seed_*/spec.json"))  # e.g. soup-k2/seed_0
     assert len(run_dirs) == 2 * len(models)
+    first_session = {run_dir: json.loads((run_dir / STATUS_FILE).read_text())["wall_time_s"] for run_dir in run_dirs}
     for run_dir in run_dirs:
-        latest = checkpointing.latest_checkpoint(run_dir)
-        assert latest is not None and latest.step == 250 and latest.state["episodes"] == 1
+        latest = latest_checkpoint(run_dir / CHECKPOINT_DIR)
+        assert latest is not None and latest.step == 250 and logs.count_episodes(run_dir) == 1
         assert not (run_dir / DONE_FILE).exists()
     assert {record.status for record in collect_runs(out)} == {"interrupted"}
     data = make_report(out)  # nothing finished yet: every run is listed as not included
@@ -522,7 +502,8 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
         assert (run_dir / logs.MONITOR_FILE).read_text().count("r,l,t") == 1
         steps = logs.read_progress(run_dir)["time/total_timesteps"].tolist()
         assert steps == sorted(steps) and steps[-1] <= 500
-        assert not (run_dir / checkpointing.CHECKPOINT_DIR).exists() and (run_dir / "model.zip").is_file()
+        assert not (run_dir / CHECKPOINT_DIR).exists() and (run_dir / "model.zip").is_file()
+        assert done["wall_time_s"] > first_session[run_dir] > 0  # the time spent training, in both sessions
     capsys.readouterr()
     assert main(command) == 0  # finished runs are skipped
     assert "4 skipped" in capsys.readouterr().out
@@ -617,7 +598,7 @@ def test_ctrl_c_checkpoints_and_resumes(tmp_path, how):
         process.terminate()  # the CLI alone
     output = process.communicate(timeout=120)[0].decode()
     assert process.returncode == 2, output
-    latest = checkpointing.latest_checkpoint(out / "td3" / "seed_0")
+    latest = latest_checkpoint(out / "td3" / "seed_0" / CHECKPOINT_DIR)
     assert latest is not None and 200 < latest.step < 3000
     finished = subprocess.run(command, env=env, capture_output=True, timeout=300)
     assert finished.returncode == 0, finished.stdout.decode() + finished.stderr.decode()

@@ -330,6 +330,8 @@ def test_the_experiment_runner_resumes_exactly(tmp_path):
             seeds=[0],
             timesteps=230,
             overrides=overrides,
+            eval_freq=50,
+            eval_episodes=1,
             **kwargs,
         )
         return dataclasses.asdict(run)
@@ -341,3 +343,10 @@ def test_the_experiment_runner_resumes_exactly(tmp_path):
     assert th.equal(_params(SOUP.load(whole)), _params(SOUP.load(parts)))
     # the episode in progress at the stop went on: the Monitor logs the same episodes
     assert logs.read_monitor(whole.parent)[["r", "l"]].equals(logs.read_monitor(parts.parent)[["r", "l"]])
+    # and the same evaluations and training logs (but for the wall-clock columns)
+    assert logs.read_evaluations(whole.parent)["step"].tolist() == [50, 100, 150, 200]
+    assert logs.read_evaluations(whole.parent).equals(logs.read_evaluations(parts.parent))
+    clock = ["time/fps", "time/time_elapsed"]
+    progress = logs.read_progress(whole.parent).drop(columns=clock)
+    assert progress["time/total_timesteps"].tolist() == [200]  # log_interval=1: at the end of the first episode
+    assert progress.equals(logs.read_progress(parts.parent).drop(columns=clock))
