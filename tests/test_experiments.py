@@ -405,39 +405,14 @@ def test_a_run_being_trained_elsewhere_is_busy(tmp_path):
     assert result["status"] == "busy" and "is being trained by pid" in result["error"]
     assert busy_reason(run_dir) is None
     assert not (run_dir / ERROR_FILE).exists() and not (run_dir / "spec.json").exists()
-    # A folder of the previous runner version has no lock file, only a heartbeat: fresh means alive, stale means dead.
-    (run_dir / "run.lock").unlink()
-    heartbeat = {"status": "running", "step": 50, "total": 100, "time": time.time() - 5}
-    (run_dir / STATUS_FILE).write_text(json.dumps(heartbeat))
-    assert run_one(dataclasses.asdict(spec))["status"] == "busy"
-    (run_dir / STATUS_FILE).write_text(json.dumps({**heartbeat, "time": time.time() - 3600}))
+    # A status that says running: the run is running while a process holds its lock, stalled (that process died) after
+    (run_dir / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": time.time()}))
+    write_grid(tmp_path, [spec])
+    with run_lock(run_dir):
+        assert [record.status for record in collect_runs(tmp_path)] == ["running"]
+    assert [record.status for record in collect_runs(tmp_path)] == ["stalled"]
     assert run_one(dataclasses.asdict(spec))["status"] == "finished"
     assert is_finished(spec)
-
-
-def test_runs_an_older_run_command_still_holds_are_left_alone(tmp_path, capsys):
-    """
-    A run command of the previous runner version (no run lock) is training the folder: the runs in its grid that it
-    has not started yet are left to it (it would start them without checking), the ones it trains are busy.
-    """
-    out = tmp_path / "runs"
-    common = ["--env", "Pendulum-v1", "--seeds", "2", "--timesteps", "100", "--out", str(out), "--no-progress"]
-    older = build_grid("Pendulum-v1", out, models=["td3"], seeds=[0, 1], timesteps=100)
-    write_grid(out, older)  # what the older command recorded
-    running = Path(older[0].run_dir)  # and the run it is training: its spec and a fresh heartbeat, no lock file
-    running.mkdir(parents=True)
-    (running / "spec.json").write_text(older[0].to_json())
-    (running / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": time.time()}))
-    assert main(["run", "--models", "td3", *common]) == 2
-    output = capsys.readouterr().out
-    assert "Summary: 2 busy" in output
-    assert "busy td3/seed_1: an older run command still working on this folder (training td3/seed_0)" in output
-    assert not Path(older[1].run_dir).exists()
-    # Once it is gone (its heartbeat stale), nothing is held back.
-    (running / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": 0}))
-    from sb3_soup.experiments.__main__ import _held_by_legacy_runner
-
-    assert _held_by_legacy_runner(str(out), older) == {}
 
 
 def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):

@@ -41,9 +41,8 @@ ERROR_FILE = "error.json"
 FINAL_MODEL = "model.zip"
 LOCK_FILE = "run.lock"
 CHECKPOINT_DIR = "checkpoints"
-# A run folder without a lock file comes from an older version of the runner, which only left a heartbeat: its
-# status.json, rewritten every second or so while it trains. A "running" status younger than this counts as alive.
-LEGACY_HEARTBEAT_S = 600.0
+LOCKING = fcntl is not None
+"""Whether runs are locked on this platform (``flock``; not on Windows)."""
 
 # Set by a signal handler or by the parent (see parallel.py): finish the current step, checkpoint, stop.
 STOP_REQUESTED = threading.Event()
@@ -215,35 +214,8 @@ def report_status(run_dir: str | os.PathLike, status: str, step: int, total: int
     write_json(Path(run_dir) / STATUS_FILE, data)
 
 
-def legacy_runs_active(out: str | os.PathLike) -> list[str]:
-    """
-    The runs of an experiment folder that a runner older than the run lock is training right now: a "running"
-    status fresher than :data:`LEGACY_HEARTBEAT_S` and no lock file. Such a ``run`` command also holds runs it has not
-    started yet, and does not check for locks before it starts them.
-
-    :param out: the experiment folder
-    :return: their ``model/seed_N`` names
-    """
-    active = []
-    for status_file in sorted(Path(out).glob(f"*/seed_*/{STATUS_FILE}")):
-        status = read_json(status_file) or {}
-        fresh = time.time() - float(status.get("time", 0.0)) < LEGACY_HEARTBEAT_S
-        if status.get("status") == "running" and fresh and not (status_file.parent / LOCK_FILE).exists():
-            active.append(f"{status_file.parent.parent.name}/{status_file.parent.name}")
-    return active
-
-
 class RunBusy(RuntimeError):
     """Another process is training this run."""
-
-
-def _legacy_busy(run_dir: Path) -> str | None:
-    """Why a run folder without a lock file (previous runner version) counts as busy: a fresh heartbeat."""
-    status = read_json(run_dir / STATUS_FILE) or {}
-    age = time.time() - float(status.get("time", 0.0))
-    if status.get("status") == "running" and age < LEGACY_HEARTBEAT_S:
-        return f"{run_dir} is being trained by another process (status updated {age:.0f} s ago)"
-    return None
 
 
 def busy_reason(run_dir: str | os.PathLike) -> str | None:
@@ -255,9 +227,7 @@ def busy_reason(run_dir: str | os.PathLike) -> str | None:
     :return: why it is busy, ``None`` when it is not
     """
     path = Path(run_dir) / LOCK_FILE
-    if not path.exists():
-        return _legacy_busy(Path(run_dir))
-    if fcntl is None:
+    if fcntl is None or not path.exists():
         return None
     with open(path) as stream:
         try:
@@ -275,14 +245,10 @@ def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
     process ends, however it ends, so a crashed run never stays locked.
 
     :param run_dir: the run's folder
-    :raises RunBusy: when another process holds it, or when a run folder of an older runner version (no lock file)
-        has a fresh "running" heartbeat
+    :raises RunBusy: when another process holds it
     """
     run_dir = Path(run_dir)
     path = run_dir / LOCK_FILE
-    reason = None if path.exists() else _legacy_busy(run_dir)
-    if reason is not None:
-        raise RunBusy(reason)
     if fcntl is None:
         yield
         return
