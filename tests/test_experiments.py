@@ -25,7 +25,7 @@ from sb3_soup.experiments import logs
 from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
 from sb3_soup.experiments.metrics import add_speed_ups, first_crossing, model_metrics, running_average, speed_up
-from sb3_soup.experiments.parallel import available_cores, run_local
+from sb3_soup.experiments.parallel import available_cores, run_grid
 from sb3_soup.experiments.progress import ProgressBoard, progress_mode
 from sb3_soup.experiments.report import collect_runs, make_report, write_grid
 from sb3_soup.experiments.runner import (
@@ -376,7 +376,7 @@ def test_failing_and_killed_runs_are_reported_and_others_finish(tmp_path):
     bad = dataclasses.replace(bad, hyperparams={**bad.hyperparams, "not_a_parameter": 1})
     victim = dataclasses.replace(victim, timesteps=1_000_000)  # killed long before its end
     status_file = Path(victim.run_dir) / STATUS_FILE
-    thread, box = _run_in_thread(run_local, [good, bad, victim], workers=3, progress=False)
+    thread, box = _run_in_thread(run_grid, [good, bad, victim], workers=3, progress=False)
     _wait_for(lambda: status_file.is_file() and json.loads(status_file.read_text()).get("status") == "running")
     os.kill(json.loads(status_file.read_text())["pid"], signal.SIGKILL)  # e.g. the out-of-memory killer
     thread.join(120)

@@ -139,7 +139,7 @@ def run_command(args: argparse.Namespace) -> int:
     :return: exit status: 0 when every run finished, 1 when some failed, 2 when some are not finished yet
         (interrupted, or busy: being trained by another ``run`` command)
     """
-    from sb3_soup.experiments.parallel import run_local, run_ray
+    from sb3_soup.experiments.parallel import run_grid
     from sb3_soup.experiments.report import write_grid
 
     specs = build_grid(
@@ -160,10 +160,7 @@ def run_command(args: argparse.Namespace) -> int:
     )
     write_grid(args.out, specs, args.suite, args.heads)
     print(f"{len(specs)} runs of {specs[0].timesteps} steps -> {args.out}", file=sys.stderr)
-    if args.ray_address:
-        results = run_ray(specs, args.ray_address, args.workers, progress=not args.no_progress)
-    else:
-        results = run_local(specs, args.workers, progress=not args.no_progress)
+    results = run_grid(specs, args.workers, progress=not args.no_progress, ray_address=args.ray_address or None)
     counts = Counter(result["status"] for result in results)
     print("Summary: " + ", ".join(f"{count} {status}" for status, count in sorted(counts.items())))
     for result in results:
