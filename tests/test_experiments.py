@@ -426,6 +426,8 @@ def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
     for spec in specs:
         Path(spec.run_dir).mkdir(parents=True)
     (Path(specs[0].run_dir) / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 400, "total": 1000}))
+    (Path(specs[1].run_dir) / CHECKPOINT_DIR).mkdir()
+    (Path(specs[1].run_dir) / CHECKPOINT_DIR / "rl_model_300_steps.zip").touch()  # the step it will resume from
 
     terminal = Terminal()
     board = ProgressBoard(specs, "bars", stream=terminal)
@@ -435,6 +437,7 @@ def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
     screen = terminal.getvalue()
     assert "all 2 runs" in screen and "td3/seed_0" in screen and "td3/seed_1" in screen
     assert "400/1.00k" in screen and "1 running" in screen and "failed" in screen
+    assert "300/1.00k" in screen and "300/2.00k" in screen  # the pending run's bar, and the overall one, start there
 
     log = io.StringIO()
     board = ProgressBoard(specs, "lines", stream=log, line_interval=0)
