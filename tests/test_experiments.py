@@ -386,6 +386,7 @@ def test_failing_and_killed_runs_are_reported_and_others_finish(tmp_path):
     assert "not_a_parameter" in json.loads((Path(bad.run_dir) / ERROR_FILE).read_text())["traceback"]
     assert "killed by SIGKILL" in results[2]["error"]
     assert "SIGKILL" in json.loads((Path(victim.run_dir) / ERROR_FILE).read_text())["error"]
+    assert json.loads(status_file.read_text())["wall_time_s"] > 0  # the time it spent is kept with its failure
     assert (Path(good.run_dir) / DONE_FILE).is_file()
     # The same spec run again in-process fails the same way, and its folder keeps refusing other settings.
     assert run_one(dataclasses.asdict(bad))["status"] == "failed"

@@ -207,11 +207,15 @@ def report_status(run_dir: str | os.PathLike, status: str, step: int, total: int
     :param status: ``"running"``, ``"finished"``, ``"interrupted"`` or ``"failed"``
     :param step: steps done
     :param total: steps in all
-    :param extra: more fields
+    :param extra: more fields, e.g. ``wall_time_s``, the seconds spent training the run so far (when it is not given,
+        as for a failure, the previous status' value is kept)
     """
+    path = Path(run_dir) / STATUS_FILE
     data = {"status": status, "step": int(step), "total": int(total), "time": time.time()}
+    if "wall_time_s" not in extra:
+        data["wall_time_s"] = (read_json(path) or {}).get("wall_time_s", 0.0)
     data.update(pid=os.getpid(), host=socket.gethostname(), **extra)
-    write_json(Path(run_dir) / STATUS_FILE, data)
+    write_json(path, data)
 
 
 class RunBusy(RuntimeError):
@@ -362,7 +366,7 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
     started = time.time()
 
     def wall_time() -> float:
-        """Seconds spent training the run, in all its sessions."""
+        """Seconds spent training the run, in all the sessions since its start from step 0."""
         return float(earlier) + time.time() - started
 
     if checkpoint is not None:  # the logs go back to the checkpoint's step
