@@ -3,15 +3,16 @@ Checkpoints a run resumes from exactly: after a crash, a kill or a planned stop,
 ``learn(remaining, reset_num_timesteps=False)`` gives the same actions and the same parameters as a run that was never
 interrupted (on CPU, same library versions and thread count).
 
-A checkpoint is four files, written by :class:`ResumableCheckpointCallback` (or :func:`save_resumable`):
+A checkpoint is four files, written by :class:`ResumableCheckpointCallback` (or :func:`save_checkpoint`,
+:func:`save_resumable`), each atomically (:func:`sb3_soup.persistence.atomic_write`) and the model zip last, so that
+a checkpoint, found by its zip, is complete or absent:
 
-- the model zip (``model.save``: networks, optimizers, strategy state, step counters, last observation, the active
-  head pairs; for SOUP also the random generators' states),
 - the replay buffer with its bootstrap masks (``model.save_replay_buffer``),
-- the training state: the random generators' states and the environment's state (every layer of a ``DummyVecEnv``:
-  VecEnv wrappers such as ``VecNormalize``, then each sub-environment's wrappers down to the simulator, e.g.
-  ``Monitor``'s running episode, ``TimeLimit``'s step count, MuJoCo's ``MjData``, the env's ``np_random``),
-- optionally the ``VecNormalize`` statistics, as SB3 saves them.
+- optionally the ``VecNormalize`` statistics, as SB3 saves them,
+- the training state: the environment's state (:func:`sb3_soup.persistence.get_env_state`: every layer of a
+  ``DummyVecEnv``, down to the simulator) and, for algorithms other than SOUP, the random generators' states,
+- the model zip (``model.save``: networks, optimizers, strategy state, step counters, last observation, the active
+  head pairs; for SOUP also the random generators' states, which ``SOUP.load`` restores).
 
 Why SB3's own ``CheckpointCallback`` cannot give this: it saves inside a step (after ``env.step``, before the
 transition is stored and the model trained), so its files disagree with each other (the environment is one step ahead
@@ -32,7 +33,6 @@ What stays inexact, and why:
 """
 
 import dataclasses
-import io
 import os
 import pickle
 import pickletools
@@ -43,28 +43,27 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
-import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CheckpointCallback
-from stable_baselines3.common.monitor import ResultsWriter
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.type_aliases import GymEnv
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_normalize
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
 
-from sb3_soup.saving import capture_rng_state, restore_rng_state
+from sb3_soup.persistence import (
+    TMP_MARK,
+    EnvStateError,
+    atomic_write,
+    capture_rng_state,
+    get_env_state,
+    restore_rng_state,
+    set_env_state,
+)
+from sb3_soup.soup import SOUP
 
-TRAINING_STATE_FORMAT = 1
-"""Format of the training-state files this version writes and reads."""
-
-# Live objects that stay with the running environment (open log files): never saved, never replaced
-_KEPT_LIVE: tuple[type, ...] = (ResultsWriter, io.IOBase)
-_TMP_MARK = ".tmp-"
-
-
-class EnvStateError(Exception):
-    """The environment's state cannot be saved (or restored into this environment)."""
+TRAINING_STATE_FORMAT = 2
+"""Format of the training-state files this version writes and reads (2: the random generators only when the model zip
+does not hold them)."""
 
 
 class StopTraining(Exception):
@@ -74,99 +73,7 @@ class StopTraining(Exception):
     """
 
 
-# ---------------------------------------------------------------- environment state
-
-
-def _qualified_name(obj: Any) -> str:
-    return f"{type(obj).__module__}.{type(obj).__qualname__}"
-
-
-def _vec_layers(vec_env: VecEnv) -> list[VecEnv]:
-    """The VecEnv wrappers, outermost first, then the base VecEnv."""
-    layers = [vec_env]
-    while isinstance(layers[-1], VecEnvWrapper):
-        layers.append(layers[-1].venv)
-    return layers
-
-
-def _env_layers(env: gym.Env) -> list[Any]:
-    """The gymnasium wrappers of a sub-environment, outermost first, then the unwrapped env."""
-    layers = [env]
-    while isinstance(layers[-1], gym.Wrapper):
-        layers.append(layers[-1].env)
-    return layers
-
-
-def _layer_state(layer: Any, links: tuple[str, ...]) -> dict[str, Any]:
-    """A layer's attributes, without its links to the layers below and without live log files."""
-    return {key: value for key, value in vars(layer).items() if key not in links and not isinstance(value, _KEPT_LIVE)}
-
-
-def _structure(vec_env: VecEnv) -> dict[str, Any]:
-    layers = _vec_layers(vec_env)
-    base = layers[-1]
-    envs = base.envs if isinstance(base, DummyVecEnv) else []
-    return {
-        "vec_layers": [_qualified_name(layer) for layer in layers],
-        "envs": [[_qualified_name(layer) for layer in _env_layers(env)] for env in envs],
-    }
-
-
-def get_env_state(vec_env: VecEnv) -> bytes:
-    """
-    The state of a ``DummyVecEnv`` (and of the VecEnv wrappers around it): every attribute of every layer, down to
-    each sub-environment's simulator, pickled (open log files such as ``Monitor``'s are left out).
-
-    Layers are saved attribute by attribute, not through their own pickling, which some envs restrict to their
-    constructor arguments (gymnasium's ``EzPickle``, used by MuJoCo envs, would lose the simulator state).
-
-    :param vec_env: the environment
-    :return: the state, for :func:`set_env_state`
-    :raises EnvStateError: when it is not a ``DummyVecEnv`` or a layer does not pickle
-    """
-    layers = _vec_layers(vec_env)
-    base = layers[-1]
-    if not isinstance(base, DummyVecEnv):
-        raise EnvStateError(
-            f"only DummyVecEnv environments can be saved (their envs live in this process), not {type(base).__name__}"
-        )
-    state = {
-        "structure": _structure(vec_env),
-        "vec_layers": [_layer_state(layer, ("venv", "class_attributes")) for layer in layers[:-1]],
-        "base": _layer_state(base, ("envs",)),
-        "envs": [[_layer_state(layer, ("env",)) for layer in _env_layers(env)] for env in base.envs],
-    }
-    try:
-        return cloudpickle.dumps(state)
-    except Exception as error:
-        raise EnvStateError(f"the environment's state does not pickle: {type(error).__name__}: {error}") from error
-
-
-def set_env_state(vec_env: VecEnv, env_state: bytes) -> None:
-    """
-    Put an environment back in a state saved by :func:`get_env_state`. It must be built the same way (same wrappers,
-    same number of envs); live log files (``Monitor``'s) stay those of ``vec_env``.
-
-    :param vec_env: the environment, e.g. freshly made
-    :param env_state: from :func:`get_env_state`
-    :raises EnvStateError: when ``vec_env`` is not built like the saved one
-    """
-    state = pickle.loads(env_state)
-    structure = _structure(vec_env)
-    if structure != state["structure"]:
-        raise EnvStateError(
-            f"the environment is not built like the saved one: saved {state['structure']}, given {structure} "
-            "(VecEnv wrappers outermost first, then each env's wrappers)"
-        )
-    layers = _vec_layers(vec_env)
-    for layer, saved in zip(layers[:-1], state["vec_layers"]):
-        vars(layer).update(saved)
-    base = layers[-1]
-    assert isinstance(base, DummyVecEnv)
-    vars(base).update(state["base"])
-    for env, saved_layers in zip(base.envs, state["envs"]):
-        for layer, saved in zip(_env_layers(env), saved_layers):
-            vars(layer).update(saved)
+# ---------------------------------------------------------------- training state (environment + random generators)
 
 
 def _check_at_boundary(model: BaseAlgorithm, vec_env: VecEnv) -> None:
@@ -186,24 +93,6 @@ def _check_at_boundary(model: BaseAlgorithm, vec_env: VecEnv) -> None:
             )
 
 
-# ---------------------------------------------------------------- training state (random generators + environment)
-
-
-def _atomic_write(path: str | os.PathLike, write: Callable[[Path], Any]) -> None:
-    """``write(tmp)`` then rename ``tmp`` to ``path`` (after an fsync): ``path`` is complete or absent, never partial."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}{_TMP_MARK}{os.getpid()}")
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as file:
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def _dump_pickle(data: Any) -> Callable[[Path], None]:
     def write(path: Path) -> None:
         with open(path, "wb") as file:
@@ -212,11 +101,16 @@ def _dump_pickle(data: Any) -> Callable[[Path], None]:
     return write
 
 
+def _zip_holds_rng_state(model: BaseAlgorithm) -> bool:
+    """Whether ``model.save`` stores the random generators' states (``SOUP.save`` does, and ``SOUP.load`` restores them)."""
+    return isinstance(model, SOUP)
+
+
 def save_training_state(model: BaseAlgorithm, path: str | os.PathLike) -> bool:
     """
-    Save what ``model.save`` and ``model.save_replay_buffer`` leave out: the random generators' states and the
-    environment's state. Call it between two rollouts (from a callback's ``_on_rollout_start``, or after ``learn``
-    returned), where the model and its environment agree.
+    Save what ``model.save`` and ``model.save_replay_buffer`` leave out: the environment's state and, for algorithms
+    whose model zip does not hold them (all but SOUP), the random generators' states. Call it between two rollouts
+    (from a callback's ``_on_rollout_start``, or after ``learn`` returned), where the model and its environment agree.
 
     :param model: the model (any SB3 algorithm)
     :param path: the file to write (atomically)
@@ -239,11 +133,11 @@ def save_training_state(model: BaseAlgorithm, path: str | os.PathLike) -> bool:
     state = {
         "format": TRAINING_STATE_FORMAT,
         "num_timesteps": int(model.num_timesteps),
-        "rng": capture_rng_state(model.action_space),
+        "rng": None if _zip_holds_rng_state(model) else capture_rng_state(model.action_space),
         "env": env_state,
         "env_missing_because": reason,
     }
-    _atomic_write(path, _dump_pickle(state))
+    atomic_write(path, _dump_pickle(state))
     return env_state is not None
 
 
@@ -269,8 +163,8 @@ def read_training_state(path: str | os.PathLike) -> dict[str, Any]:
 
 def restore_training_state(model: BaseAlgorithm, state: dict[str, Any], path: Any = "training state") -> bool:
     """
-    Restore the random generators and, when it was saved and the model kept its last observation
-    (``load(..., force_reset=False)``), the environment.
+    Restore the random generators (when the training state holds them) and, when it was saved and the model kept its
+    last observation (``load(..., force_reset=False)``), the environment.
 
     :param model: the loaded model, with its environment
     :param state: from :func:`read_training_state`
@@ -282,7 +176,8 @@ def restore_training_state(model: BaseAlgorithm, state: dict[str, Any], path: An
             f"{path} was saved at step {state['num_timesteps']} but the model is at step {model.num_timesteps}: "
             "files from different checkpoints"
         )
-    restore_rng_state(state["rng"], model.action_space)
+    if state["rng"] is not None:
+        restore_rng_state(state["rng"], model.action_space)
     vec_env = model.get_env()
     if state["env"] is None or vec_env is None or model._last_obs is None:
         return False
@@ -301,25 +196,24 @@ def save_resumable(
     vecnormalize_path: str | os.PathLike | None = None,
 ) -> bool:
     """
-    Save a checkpoint: each file written atomically, the training state last (so that its presence means the
-    checkpoint is complete). Call it between two rollouts (see :func:`save_training_state`).
+    Save a checkpoint: each file written atomically, the model zip last (a checkpoint is found by its zip, so its
+    presence means the checkpoint is complete). Call it between two rollouts (see :func:`save_training_state`).
 
     :param model: the model
     :param model_path: its zip
     :param replay_buffer_path: its replay buffer (off-policy models), or None
-    :param training_state_path: random generators and environment, or None
+    :param training_state_path: the environment (and the random generators, see :func:`save_training_state`), or None
     :param vecnormalize_path: the ``VecNormalize`` statistics (when the env has them), or None
     :return: whether the checkpoint holds the environment's state (an exact resume)
     """
-    _atomic_write(model_path, model.save)
     if replay_buffer_path is not None and isinstance(model, OffPolicyAlgorithm) and model.replay_buffer is not None:
-        _atomic_write(replay_buffer_path, model.save_replay_buffer)
+        atomic_write(replay_buffer_path, model.save_replay_buffer)
     vec_normalize = model.get_vec_normalize_env()
     if vecnormalize_path is not None and vec_normalize is not None:
-        _atomic_write(vecnormalize_path, lambda path: vec_normalize.save(str(path)))
-    if training_state_path is None:
-        return False
-    return save_training_state(model, training_state_path)
+        atomic_write(vecnormalize_path, lambda path: vec_normalize.save(str(path)))
+    exact = training_state_path is not None and save_training_state(model, training_state_path)
+    atomic_write(model_path, model.save)
+    return exact
 
 
 def load_resumable(
@@ -360,7 +254,7 @@ class CheckpointFiles:
     :param step: ``num_timesteps`` when it was saved
     :param model: the model zip
     :param replay_buffer: the replay buffer, if saved
-    :param training_state: the training state (random generators, environment), if saved
+    :param training_state: the training state (environment, random generators), if saved
     :param vecnormalize: the ``VecNormalize`` statistics, if saved
     """
 
@@ -468,8 +362,6 @@ def load_checkpoint(
     :return: the model
     """
     if algo_class is None:
-        from sb3_soup.soup import SOUP
-
         algo_class = SOUP
     if checkpoint.vecnormalize is not None and isinstance(env, VecEnv) and unwrap_vec_normalize(env) is None:
         env = VecNormalize.load(str(checkpoint.vecnormalize), env)
@@ -478,13 +370,63 @@ def load_checkpoint(
     )
 
 
+def save_checkpoint(
+    model: BaseAlgorithm,
+    save_path: str | os.PathLike,
+    name_prefix: str = "rl_model",
+    save_replay_buffer: bool = True,
+    save_vecnormalize: bool = False,
+    keep_last: int | None = None,
+) -> CheckpointFiles:
+    """
+    Save a checkpoint now, as :class:`ResumableCheckpointCallback` does every ``save_freq`` steps (same files, see
+    :func:`save_resumable`), then delete the older ones beyond ``keep_last``. Call it between two rollouts (e.g. after
+    ``learn`` returned or :class:`StopTraining` stopped it).
+
+    :param model: the model
+    :param save_path: the checkpoint folder
+    :param name_prefix: common prefix of the files
+    :param save_replay_buffer: save the replay buffer too (needed to resume)
+    :param save_vecnormalize: save the ``VecNormalize`` statistics too, as SB3 does
+    :param keep_last: keep only the newest ``keep_last`` checkpoints (None: keep all)
+    :return: the checkpoint's files
+    """
+    step = int(model.num_timesteps)
+    root = Path(save_path)
+    files = CheckpointFiles(
+        step,
+        _file(root, name_prefix, "", step, "zip"),
+        _file(root, name_prefix, "replay_buffer_", step, "pkl") if save_replay_buffer else None,
+        _file(root, name_prefix, "training_state_", step, "pkl"),
+        _file(root, name_prefix, "vecnormalize_", step, "pkl") if save_vecnormalize else None,
+    )
+    save_resumable(model, files.model, files.replay_buffer, files.training_state, files.vecnormalize)
+    if keep_last is not None:
+        for old in find_checkpoints(root, name_prefix)[keep_last:]:
+            for path in old.paths:  # the zip first: the checkpoint is gone at once
+                path.unlink(missing_ok=True)
+    return files
+
+
+def _remove_leftovers(save_path: Path, name_prefix: str) -> None:
+    """What a process killed while saving left: temporary files, and the files of a checkpoint without its zip."""
+    for stale in save_path.glob(f".{name_prefix}_*{TMP_MARK}*"):
+        stale.unlink(missing_ok=True)
+    pattern = re.compile(rf"{re.escape(name_prefix)}_(?:replay_buffer|training_state|vecnormalize)_(\d+)_steps\.pkl")
+    for path in save_path.iterdir():
+        match = pattern.fullmatch(path.name)
+        if match and not _file(save_path, name_prefix, "", int(match.group(1)), "zip").exists():
+            path.unlink(missing_ok=True)
+
+
 class ResumableCheckpointCallback(CheckpointCallback):
     """
     SB3's ``CheckpointCallback`` (same arguments, same file names) whose checkpoints resume exactly
     (see :mod:`sb3_soup.checkpoint`): it saves between two rollouts, every ``save_freq`` calls to ``env.step()``
     counted from the run's start (so a resumed run keeps the schedule), adds
-    ``{name_prefix}_training_state_{N}_steps.pkl``, writes each file atomically (training state last) and can delete
-    old checkpoints. Resume with :func:`latest_checkpoint` and :func:`load_checkpoint`.
+    ``{name_prefix}_training_state_{N}_steps.pkl``, writes each file atomically (the model zip last), clears what a
+    process killed while saving left, and can delete old checkpoints. Resume with :func:`latest_checkpoint` and
+    :func:`load_checkpoint`.
 
     :param save_freq: save every ``save_freq`` calls to ``env.step()`` (``save_freq * n_envs`` steps)
     :param save_path: the checkpoint folder
@@ -516,8 +458,7 @@ class ResumableCheckpointCallback(CheckpointCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.last_saved = int(self.model.num_timesteps)
-        for stale in Path(self.save_path).glob(f".{self.name_prefix}_*{_TMP_MARK}*"):  # from a process killed mid-save
-            stale.unlink(missing_ok=True)
+        _remove_leftovers(Path(self.save_path), self.name_prefix)
 
     def _on_step(self) -> bool:
         return True
@@ -529,21 +470,10 @@ class ResumableCheckpointCallback(CheckpointCallback):
 
     def save(self) -> CheckpointFiles:
         """Save a checkpoint now (call it between two rollouts)."""
-        step = int(self.model.num_timesteps)
-        root = Path(self.save_path)
-        files = CheckpointFiles(
-            step,
-            _file(root, self.name_prefix, "", step, "zip"),
-            _file(root, self.name_prefix, "replay_buffer_", step, "pkl") if self.save_replay_buffer else None,
-            _file(root, self.name_prefix, "training_state_", step, "pkl"),
-            _file(root, self.name_prefix, "vecnormalize_", step, "pkl") if self.save_vecnormalize else None,
+        files = save_checkpoint(
+            self.model, self.save_path, self.name_prefix, self.save_replay_buffer, self.save_vecnormalize, self.keep_last
         )
-        save_resumable(self.model, files.model, files.replay_buffer, files.training_state, files.vecnormalize)
-        self.last_saved = step
+        self.last_saved = files.step
         if self.verbose >= 2:
             print(f"Saving resumable checkpoint {files.model}")
-        if self.keep_last is not None:
-            for old in find_checkpoints(root, self.name_prefix)[self.keep_last :]:
-                for path in old.paths:
-                    path.unlink(missing_ok=True)
         return files

@@ -1,5 +1,5 @@
 """
-What a saved SOUP model carries besides SB3's content, and the checks made before loading one.
+SOUP's model zips: what they carry besides SB3's content, and the checks made before loading one.
 
 - **Save format.** Every model zip stores ``_sb3_soup_format`` (:data:`SAVE_FORMAT_VERSION`) and ``_sb3_soup_version``
   (the sb3-soup release that wrote it). A file is read when its format is in
@@ -7,22 +7,18 @@ What a saved SOUP model carries besides SB3's content, and the checks made befor
   Bump :data:`SAVE_FORMAT_VERSION` whenever a change makes older files load wrongly (other parameter names or
   shapes, a renamed attribute), and raise :data:`MIN_READABLE_FORMAT` when older files can no longer be read.
   Format 0 is a file written by sb3-soup 0.1.0a0 before the format was stored: same content, no random-generator state.
-- **Random generators.** ``SOUP.save`` stores the states of Python's ``random``, NumPy's global generator, torch's
-  (CPU and, when in use, CUDA) generators and the action space's generator; ``SOUP.load`` restores them, so that
-  ``load`` then ``learn(..., reset_num_timesteps=False)`` continues the random streams where ``save`` left them.
+- **Random generators.** ``SOUP.save`` stores the random generators' states (see
+  :func:`sb3_soup.persistence.capture_rng_state`) as ``_rng_state``; ``SOUP.load`` restores them, so that ``load``
+  then ``learn(..., reset_num_timesteps=False)`` continues the random streams where ``save`` left them.
 """
 
-import copy
 import io
 import json
 import os
 import pathlib
-import random
 import zipfile
 from typing import Any
 
-import numpy as np
-import torch as th
 from stable_baselines3.common.save_util import open_path
 
 SAVE_FORMAT_VERSION = 1
@@ -127,35 +123,3 @@ def check_saved_format(data: dict[str, Any], path: Any) -> int:
             f"sb3-soup {saved_version} (pip install sb3-soup=={saved_version}) and retrain, or keep using that version"
         )
     return saved_format
-
-
-def capture_rng_state(action_space: Any = None) -> dict[str, Any]:
-    """
-    The states of the random generators a training run draws from.
-
-    :param action_space: also keep this gymnasium space's generator (SB3 samples warm-up actions from it)
-    :return: a picklable dict for :func:`restore_rng_state`
-    """
-    state: dict[str, Any] = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": th.get_rng_state()}
-    if th.cuda.is_available() and th.cuda.is_initialized():
-        state["torch_cuda"] = th.cuda.get_rng_state_all()
-    if action_space is not None:
-        state["action_space"] = copy.deepcopy(getattr(action_space, "_np_random", None))
-    return state
-
-
-def restore_rng_state(state: dict[str, Any], action_space: Any = None) -> None:
-    """
-    Put the random generators back in the state :func:`capture_rng_state` returned.
-
-    :param state: the captured state
-    :param action_space: restore this space's generator too (when it was captured)
-    """
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    th.set_rng_state(state["torch"])
-    cuda_states = state.get("torch_cuda")
-    if cuda_states is not None and th.cuda.is_available() and th.cuda.device_count() == len(cuda_states):
-        th.cuda.set_rng_state_all(cuda_states)
-    if action_space is not None and "action_space" in state and state["action_space"] is not None:
-        action_space._np_random = copy.deepcopy(state["action_space"])

@@ -34,16 +34,10 @@ from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.losses import actor_loss, critic_loss, td_target
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
+from sb3_soup.persistence import capture_rng_state, restore_rng_state
 from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.saving import (
-    SAVE_FORMAT_VERSION,
-    capture_rng_state,
-    check_saved_format,
-    package_version,
-    read_saved_data,
-    restore_rng_state,
-)
+from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data
 from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")

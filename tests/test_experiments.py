@@ -20,14 +20,16 @@ import numpy as np
 import pytest
 
 from sb3_soup import SOUP
-from sb3_soup.experiments import checkpointing, logs
+from sb3_soup.checkpoint import latest_checkpoint
+from sb3_soup.experiments import logs
 from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
 from sb3_soup.experiments.metrics import add_speed_ups, first_crossing, model_metrics, running_average, speed_up
-from sb3_soup.experiments.parallel import available_cores, run_local
+from sb3_soup.experiments.parallel import available_cores, run_grid
 from sb3_soup.experiments.progress import ProgressBoard, progress_mode
 from sb3_soup.experiments.report import collect_runs, make_report, write_grid
 from sb3_soup.experiments.runner import (
+    CHECKPOINT_DIR,
     DONE_FILE,
     ERROR_FILE,
     STATUS_FILE,
@@ -328,35 +330,12 @@ def test_hyperparams_file(tmp_path):
     assert specs[0].timesteps == 1_000_000 and specs[0].hyperparams["n_heads"] == 3  # the suite's K wins
 
 
-# ---------------------------------------------------------------- checkpoints and logs
-
-
-def test_checkpoint_roundtrip(tmp_path):
-    import gymnasium as gym
-    from stable_baselines3 import TD3
-    from stable_baselines3.common.vec_env import DummyVecEnv
-
-    env = DummyVecEnv([lambda: logs.monitor_env(gym.make("Pendulum-v1"), tmp_path)])
-    model = TD3("MlpPolicy", env, learning_starts=20, batch_size=16, policy_kwargs={"net_arch": [16]}, seed=0)
-    model.learn(60)
-    assert checkpointing.latest_checkpoint(tmp_path) is None
-    first = checkpointing.save_checkpoint(model, tmp_path, {"episodes": 0})
-    model.learn(40, reset_num_timesteps=False)
-    second = checkpointing.save_checkpoint(model, tmp_path, {"episodes": 0})
-    latest = checkpointing.latest_checkpoint(tmp_path)
-    assert latest is not None and latest.step == second.step == 100 and not first.path.exists()
-    assert latest.state == {"episodes": 0, "num_timesteps": 100}
-    resumed = checkpointing.resume(latest, TD3, env)
-    assert resumed.num_timesteps == 100 and resumed.replay_buffer.size() == 100
-    assert checkpointing.remaining_steps(resumed, 150) == 50
-    resumed.learn(checkpointing.remaining_steps(resumed, 150), reset_num_timesteps=False)
-    assert resumed.num_timesteps == 150
-    env.close()
+# ---------------------------------------------------------------- logs
 
 
 def test_logs_continue_after_truncation(tmp_path):
     (tmp_path / logs.MONITOR_FILE).write_text('#{"t_start": 0}\nr,l,t\n1.0,10,0.1\n2.0,10,0.2\n3.0,10,0.3\n')
-    logs.truncate_monitor(tmp_path, 2)
+    logs.truncate_monitor(tmp_path, 25)  # the episodes that ended by step 25: at steps 10 and 20
     assert logs.count_episodes(tmp_path) == 2
     assert list(logs.read_monitor(tmp_path)["r"]) == [1.0, 2.0]
 
@@ -402,7 +381,7 @@ def test_failing_and_killed_runs_are_reported_and_others_finish(tmp_path):
     bad = dataclasses.replace(bad, hyperparams={**bad.hyperparams, "not_a_parameter": 1})
     victim = dataclasses.replace(victim, timesteps=1_000_000)  # killed long before its end
     status_file = Path(victim.run_dir) / STATUS_FILE
-    thread, box = _run_in_thread(run_local, [good, bad, victim], workers=3, progress=False)
+    thread, box = _run_in_thread(run_grid, [good, bad, victim], workers=3, progress=False)
     _wait_for(lambda: status_file.is_file() and json.loads(status_file.read_text()).get("status") == "running")
     os.kill(json.loads(status_file.read_text())["pid"], signal.SIGKILL)  # e.g. the out-of-memory killer
     thread.join(120)
@@ -412,6 +391,7 @@ def test_failing_and_killed_runs_are_reported_and_others_finish(tmp_path):
     assert "not_a_parameter" in json.loads((Path(bad.run_dir) / ERROR_FILE).read_text())["traceback"]
     assert "killed by SIGKILL" in results[2]["error"]
     assert "SIGKILL" in json.loads((Path(victim.run_dir) / ERROR_FILE).read_text())["error"]
+    assert json.loads(status_file.read_text())["wall_time_s"] > 0  # the time it spent is kept with its failure
     assert (Path(good.run_dir) / DONE_FILE).is_file()
     # The same spec run again in-process fails the same way, and its folder keeps refusing other settings.
     assert run_one(dataclasses.asdict(bad))["status"] == "failed"
@@ -431,39 +411,14 @@ def test_a_run_being_trained_elsewhere_is_busy(tmp_path):
     assert result["status"] == "busy" and "is being trained by pid" in result["error"]
     assert busy_reason(run_dir) is None
     assert not (run_dir / ERROR_FILE).exists() and not (run_dir / "spec.json").exists()
-    # A folder of the previous runner version has no lock file, only a heartbeat: fresh means alive, stale means dead.
-    (run_dir / "run.lock").unlink()
-    heartbeat = {"status": "running", "step": 50, "total": 100, "time": time.time() - 5}
-    (run_dir / STATUS_FILE).write_text(json.dumps(heartbeat))
-    assert run_one(dataclasses.asdict(spec))["status"] == "busy"
-    (run_dir / STATUS_FILE).write_text(json.dumps({**heartbeat, "time": time.time() - 3600}))
+    # A status that says running: the run is running while a process holds its lock, stalled (that process died) after
+    (run_dir / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": time.time()}))
+    write_grid(tmp_path, [spec])
+    with run_lock(run_dir):
+        assert [record.status for record in collect_runs(tmp_path)] == ["running"]
+    assert [record.status for record in collect_runs(tmp_path)] == ["stalled"]
     assert run_one(dataclasses.asdict(spec))["status"] == "finished"
     assert is_finished(spec)
-
-
-def test_runs_an_older_run_command_still_holds_are_left_alone(tmp_path, capsys):
-    """
-    A run command of the previous runner version (no run lock) is training the folder: the runs in its grid that it
-    has not started yet are left to it (it would start them without checking), the ones it trains are busy.
-    """
-    out = tmp_path / "runs"
-    common = ["--env", "Pendulum-v1", "--seeds", "2", "--timesteps", "100", "--out", str(out), "--no-progress"]
-    older = build_grid("Pendulum-v1", out, models=["td3"], seeds=[0, 1], timesteps=100)
-    write_grid(out, older)  # what the older command recorded
-    running = Path(older[0].run_dir)  # and the run it is training: its spec and a fresh heartbeat, no lock file
-    running.mkdir(parents=True)
-    (running / "spec.json").write_text(older[0].to_json())
-    (running / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": time.time()}))
-    assert main(["run", "--models", "td3", *common]) == 2
-    output = capsys.readouterr().out
-    assert "Summary: 2 busy" in output
-    assert "busy td3/seed_1: an older run command still working on this folder (training td3/seed_0)" in output
-    assert not Path(older[1].run_dir).exists()
-    # Once it is gone (its heartbeat stale), nothing is held back.
-    (running / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 50, "total": 100, "time": 0}))
-    from sb3_soup.experiments.__main__ import _held_by_legacy_runner
-
-    assert _held_by_legacy_runner(str(out), older) == {}
 
 
 def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
@@ -477,6 +432,8 @@ def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
     for spec in specs:
         Path(spec.run_dir).mkdir(parents=True)
     (Path(specs[0].run_dir) / STATUS_FILE).write_text(json.dumps({"status": "running", "step": 400, "total": 1000}))
+    (Path(specs[1].run_dir) / CHECKPOINT_DIR).mkdir()
+    (Path(specs[1].run_dir) / CHECKPOINT_DIR / "rl_model_300_steps.zip").touch()  # the step it will resume from
 
     terminal = Terminal()
     board = ProgressBoard(specs, "bars", stream=terminal)
@@ -486,6 +443,7 @@ def test_progress_bars_in_a_terminal_and_lines_elsewhere(tmp_path):
     screen = terminal.getvalue()
     assert "all 2 runs" in screen and "td3/seed_0" in screen and "td3/seed_1" in screen
     assert "400/1.00k" in screen and "1 running" in screen and "failed" in screen
+    assert "300/1.00k" in screen and "300/2.00k" in screen  # the pending run's bar, and the overall one, start there
 
     log = io.StringIO()
     board = ProgressBoard(specs, "lines", stream=log, line_interval=0)
@@ -508,9 +466,10 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
     models = MODELS.split(",")
     run_dirs = sorted(path.parent for path in out.glob("*/seed_*/spec.json"))  # e.g. soup-k2/seed_0
     assert len(run_dirs) == 2 * len(models)
+    first_session = {run_dir: json.loads((run_dir / STATUS_FILE).read_text())["wall_time_s"] for run_dir in run_dirs}
     for run_dir in run_dirs:
-        latest = checkpointing.latest_checkpoint(run_dir)
-        assert latest is not None and latest.step == 250 and latest.state["episodes"] == 1
+        latest = latest_checkpoint(run_dir / CHECKPOINT_DIR)
+        assert latest is not None and latest.step == 250 and logs.count_episodes(run_dir) == 1
         assert not (run_dir / DONE_FILE).exists()
     assert {record.status for record in collect_runs(out)} == {"interrupted"}
     data = make_report(out)  # nothing finished yet: every run is listed as not included
@@ -527,7 +486,8 @@ def test_end_to_end_interrupted_resumed_and_report(tmp_path, capsys):
         assert (run_dir / logs.MONITOR_FILE).read_text().count("r,l,t") == 1
         steps = logs.read_progress(run_dir)["time/total_timesteps"].tolist()
         assert steps == sorted(steps) and steps[-1] <= 500
-        assert not (run_dir / checkpointing.CHECKPOINT_DIR).exists() and (run_dir / "model.zip").is_file()
+        assert not (run_dir / CHECKPOINT_DIR).exists() and (run_dir / "model.zip").is_file()
+        assert done["wall_time_s"] > first_session[run_dir] > 0  # the time spent training, in both sessions
     capsys.readouterr()
     assert main(command) == 0  # finished runs are skipped
     assert "4 skipped" in capsys.readouterr().out
@@ -622,7 +582,7 @@ def test_ctrl_c_checkpoints_and_resumes(tmp_path, how):
         process.terminate()  # the CLI alone
     output = process.communicate(timeout=120)[0].decode()
     assert process.returncode == 2, output
-    latest = checkpointing.latest_checkpoint(out / "td3" / "seed_0")
+    latest = latest_checkpoint(out / "td3" / "seed_0" / CHECKPOINT_DIR)
     assert latest is not None and 200 < latest.step < 3000
     finished = subprocess.run(command, env=env, capture_output=True, timeout=300)
     assert finished.returncode == 0, finished.stdout.decode() + finished.stderr.decode()

@@ -14,21 +14,23 @@ import numpy as np
 import pytest
 import torch as th
 from resume_run import KWARGS, SAVE_FREQ, TINY, make_model
+from stable_baselines3 import TD3
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_soup import SOUP
 from sb3_soup.checkpoint import (
-    EnvStateError,
     ResumableCheckpointCallback,
     find_checkpoints,
-    get_env_state,
     latest_checkpoint,
     load_checkpoint,
+    read_training_state,
+    save_checkpoint,
     save_training_state,
-    set_env_state,
 )
+from sb3_soup.persistence import EnvStateError, get_env_state, set_env_state
 
 SCRIPT = Path(__file__).with_name("resume_run.py")
 
@@ -103,7 +105,7 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     )
     try:
         deadline = time.time() + 240
-        while len(list(tmp_path.glob("rl_model_training_state_*.pkl"))) < 2:
+        while len(list(tmp_path.glob("rl_model_*_steps.zip"))) < 2:  # written last: two complete checkpoints
             assert process.poll() is None, process.communicate()[0].decode()
             assert time.time() < deadline, "no checkpoints within 240 s"
             time.sleep(0.05)
@@ -169,6 +171,8 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
     assert [checkpoint.step for checkpoint in find_checkpoints(tmp_path)] == [240, 160]  # every 40 * 2 steps, last 2 kept
     checkpoint = next(checkpoint for checkpoint in find_checkpoints(tmp_path) if checkpoint.step == resume_at)
 
+    assert read_training_state(checkpoint.training_state)["rng"] is None  # SOUP's zip holds the random generators
+
     resumed = load_checkpoint(checkpoint, new_env())
     _assert_same(_state(resumed), recorded.snapshot)
     assert float(resumed.policy.confidence.n_steps) == resume_at  # the decayed strategy's counter
@@ -184,6 +188,31 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
     other = Recorder()
     sb3_way.learn(total - resume_at, callback=other, reset_num_timesteps=False)
     assert not np.array_equal(np.concatenate(other.actions), np.concatenate(continued.actions))
+
+
+def test_other_algorithms_resume_exactly_too(tmp_path):
+    """TD3's zip holds no random generators: its checkpoints keep them in the training state."""
+
+    def new_model():
+        env = DummyVecEnv([lambda: gym.make("Pendulum-v1")])
+        noise = NormalActionNoise(np.zeros(1), 0.1 * np.ones(1))  # draws from NumPy's global generator
+        return TD3("MlpPolicy", env, learning_starts=20, batch_size=16, policy_kwargs={"net_arch": [16]}, action_noise=noise,
+                   seed=0)  # fmt: skip
+
+    reference = new_model()
+    reference.learn(100)
+    interrupted = new_model()
+    interrupted.learn(40)
+    save_checkpoint(interrupted, tmp_path, keep_last=1)
+    interrupted.learn(20, reset_num_timesteps=False)
+    files = save_checkpoint(interrupted, tmp_path, keep_last=1)
+    assert [checkpoint.step for checkpoint in find_checkpoints(tmp_path)] == [60]  # the older one deleted
+    assert read_training_state(files.training_state)["rng"] is not None
+    np.random.seed(1)  # whatever happens in between
+    th.manual_seed(1)
+    resumed = load_checkpoint(latest_checkpoint(tmp_path), DummyVecEnv([lambda: gym.make("Pendulum-v1")]), TD3)
+    resumed.learn(40, reset_num_timesteps=False)
+    assert th.equal(_params(resumed), _params(reference))
 
 
 def test_save_after_learn_then_load_with_the_live_env_continues_exactly(tmp_path):
@@ -218,11 +247,14 @@ def test_latest_checkpoint_skips_files_cut_short_by_a_kill(tmp_path):
     (tmp_path / "rl_model_replay_buffer_50_steps.pkl").unlink()
     assert latest_checkpoint(tmp_path) is None and latest_checkpoint(tmp_path, need_replay_buffer=False).step == 50
 
-    # sb3-soup's callback writes atomically and clears what a killed process left half-written
+    # sb3-soup's callback writes atomically, the zip last, and clears what a killed process left half-written
     stale = tmp_path / ".rl_model_200_steps.zip.tmp-12345"
     stale.write_bytes(b"PK\x03\x04 half")
+    orphan = tmp_path / "rl_model_replay_buffer_250_steps.pkl"  # killed before the zip of its checkpoint
+    orphan.write_bytes(b"\x80")
     model.learn(100, callback=ResumableCheckpointCallback(50, str(tmp_path)), reset_num_timesteps=False)
-    assert not stale.exists() and latest_checkpoint(tmp_path).step == 200  # the last one between two rollouts
+    assert not stale.exists() and not orphan.exists()
+    assert latest_checkpoint(tmp_path).step == 200  # the last one between two rollouts
     assert not list(tmp_path.glob(".*"))
 
 
@@ -298,6 +330,8 @@ def test_the_experiment_runner_resumes_exactly(tmp_path):
             seeds=[0],
             timesteps=230,
             overrides=overrides,
+            eval_freq=50,
+            eval_episodes=1,
             **kwargs,
         )
         return dataclasses.asdict(run)
@@ -309,3 +343,10 @@ def test_the_experiment_runner_resumes_exactly(tmp_path):
     assert th.equal(_params(SOUP.load(whole)), _params(SOUP.load(parts)))
     # the episode in progress at the stop went on: the Monitor logs the same episodes
     assert logs.read_monitor(whole.parent)[["r", "l"]].equals(logs.read_monitor(parts.parent)[["r", "l"]])
+    # and the same evaluations and training logs (but for the wall-clock columns)
+    assert logs.read_evaluations(whole.parent)["step"].tolist() == [50, 100, 150, 200]
+    assert logs.read_evaluations(whole.parent).equals(logs.read_evaluations(parts.parent))
+    clock = ["time/fps", "time/time_elapsed"]
+    progress = logs.read_progress(whole.parent).drop(columns=clock)
+    assert progress["time/total_timesteps"].tolist() == [200]  # log_interval=1: at the end of the first episode
+    assert progress.equals(logs.read_progress(parts.parent).drop(columns=clock))

@@ -18,7 +18,6 @@ import sys
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from sb3_soup.experiments.grid import SUITES, VARIANTS, build_grid, parse_overrides, parse_seeds
 
@@ -144,7 +143,7 @@ def run_command(args: argparse.Namespace) -> int:
     :return: exit status: 0 when every run finished, 1 when some failed, 2 when some are not finished yet
         (interrupted, or busy: being trained by another ``run`` command)
     """
-    from sb3_soup.experiments.parallel import run_local, run_ray
+    from sb3_soup.experiments.parallel import run_grid
     from sb3_soup.experiments.report import write_grid
 
     specs = build_grid(
@@ -163,18 +162,9 @@ def run_command(args: argparse.Namespace) -> int:
         eval_episodes=args.eval_episodes,
         name=args.name,
     )
-    held = _held_by_legacy_runner(args.out, specs)
     write_grid(args.out, specs, args.suite, args.heads)
     print(f"{len(specs)} runs of {specs[0].timesteps} steps -> {args.out}", file=sys.stderr)
-    todo = [spec for spec in specs if spec.key not in held]
-    if not todo:
-        results = []
-    elif args.ray_address:
-        results = run_ray(todo, args.ray_address, args.workers, progress=not args.no_progress)
-    else:
-        results = run_local(todo, args.workers, progress=not args.no_progress)
-    by_key = {result["key"]: result for result in results} | held
-    results = [by_key[spec.key] for spec in specs]
+    results = run_grid(specs, args.workers, progress=not args.no_progress, ray_address=args.ray_address or None)
     counts = Counter(result["status"] for result in results)
     print("Summary: " + ", ".join(f"{count} {status}" for status, count in sorted(counts.items())))
     for result in results:
@@ -187,31 +177,6 @@ def run_command(args: argparse.Namespace) -> int:
     if counts.get("failed"):
         return 1
     return 2 if counts.get("interrupted") or counts.get("busy") else 0
-
-
-def _held_by_legacy_runner(out: str, specs: Sequence[Any]) -> dict[str, dict[str, Any]]:
-    """
-    The runs to leave alone because a ``run`` command of a runner older than the run lock is still working on the
-    folder (see :func:`~sb3_soup.experiments.runner.legacy_runs_active`) and has them in its grid without having
-    started them: it would start them later without checking whether this command is training them.
-
-    :param out: the experiment folder
-    :param specs: this command's runs
-    :return: ``model/seed_N`` -> a ``busy`` result, for each run held back
-    """
-    from sb3_soup.experiments.report import GRID_FILE
-    from sb3_soup.experiments.runner import SPEC_FILE, legacy_runs_active, read_json
-
-    active = legacy_runs_active(out)
-    if not active:
-        return {}
-    listed = {f"{data['model']}/seed_{data['seed']}" for data in (read_json(Path(out) / GRID_FILE) or {}).get("runs", [])}
-    message = f"an older run command still working on this folder (training {', '.join(active)}) has it in its grid"
-    return {
-        spec.key: {"key": spec.key, "run_dir": spec.run_dir, "status": "busy", "step": 0, "error": message}
-        for spec in specs
-        if spec.key in listed and not (Path(spec.run_dir) / SPEC_FILE).exists()
-    }
 
 
 def report_command(args: argparse.Namespace) -> int:

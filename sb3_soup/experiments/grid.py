@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import importlib.util
 import json
 import os
 import re
@@ -416,10 +417,13 @@ def zoo_hyperparams(algo: str, env_id: str) -> dict[str, Any]:
     :return: constructor arguments, with the Gaussian noise's std as ``noise_std`` (the runner makes it
         ``NormalActionNoise``)
     """
-    import rl_zoo3
-
+    # Found, not imported: importing rl_zoo3 replaces gymnasium's TimeLimit for the whole process (rl_zoo3.gym_patches),
+    # and an env made afterwards no longer matches the state of one made before (sb3_soup.persistence.set_env_state)
+    package = importlib.util.find_spec("rl_zoo3")
+    if package is None or package.origin is None:
+        raise ImportError("the RL Zoo's hyper-parameters need rl_zoo3: pip install rl-zoo3")
     zoo_algo = {"td3": "td3", "sb3_ddpg": "ddpg"}[algo]
-    file = Path(rl_zoo3.__file__).parent / "hyperparams" / f"{zoo_algo}.yml"
+    file = Path(package.origin).parent / "hyperparams" / f"{zoo_algo}.yml"
     with open(file) as stream:
         entries = yaml.safe_load(stream) or {}
     if env_id not in entries:

@@ -1,7 +1,7 @@
 """
 A run's logs: the Monitor CSV (one row per training episode), SB3's CSV logger (``progress.csv``) and the
 deterministic evaluations (``evaluations.csv``, one row per evaluation episode), all kept continuous across resumes:
-rows written after the checkpoint a run resumes from are cut, then new rows are appended.
+rows written after the step of the checkpoint a run resumes from are cut, then new rows are appended.
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ import gymnasium as gym
 import pandas as pd
 from stable_baselines3.common.logger import CSVOutputFormat, Logger
 from stable_baselines3.common.monitor import Monitor
+
+from sb3_soup.persistence import atomic_write
 
 MONITOR_FILE = "monitor.csv"
 PROGRESS_FILE = "progress.csv"
@@ -48,18 +50,30 @@ def count_episodes(run_dir: str | os.PathLike) -> int:
         return max(0, sum(1 for line in stream if line.strip()) - _MONITOR_HEADER_LINES)
 
 
-def truncate_monitor(run_dir: str | os.PathLike, n_episodes: int) -> None:
+def truncate_monitor(run_dir: str | os.PathLike, max_step: int) -> None:
     """
-    Keep the first ``n_episodes`` episodes of the run's Monitor CSV (the header stays).
+    Keep the episodes of the run's Monitor CSV that ended by step ``max_step`` (the header stays). A run trains on one
+    env, so an episode ends at the sum of the episode lengths so far; a last line cut short by a kill is dropped.
 
     :param run_dir: the run's folder
-    :param n_episodes: how many episodes to keep
+    :param max_step: the last step to keep (the checkpoint's ``num_timesteps``)
     """
     path = Path(run_dir) / MONITOR_FILE
-    if not path.is_file():
+    lines = [line for line in path.read_text().splitlines(keepends=True) if line.strip()] if path.is_file() else []
+    if len(lines) < _MONITOR_HEADER_LINES:
         return
-    lines = [line for line in path.read_text().splitlines(keepends=True) if line.strip()]
-    path.write_text("".join(lines[: _MONITOR_HEADER_LINES + n_episodes]))
+    header, rows = lines[:_MONITOR_HEADER_LINES], lines[_MONITOR_HEADER_LINES:]
+    length = next(csv.reader([header[-1]])).index("l")
+    kept, end = [], 0
+    for line in rows:
+        if not line.endswith("\n"):
+            break
+        end += int(next(csv.reader([line]))[length])
+        if end > max_step:
+            break
+        kept.append(line)
+    text = "".join(header + kept)
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def truncate_progress(run_dir: str | os.PathLike, max_step: int) -> None:
@@ -125,7 +139,7 @@ def _truncate_csv(path: Path, step_column: str, max_step: int) -> None:
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(header)
     writer.writerows(body)
-    path.write_text(buffer.getvalue())
+    atomic_write(path, lambda tmp: tmp.write_text(buffer.getvalue()))
 
 
 class AppendingCSVOutputFormat(CSVOutputFormat):

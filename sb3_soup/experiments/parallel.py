@@ -1,19 +1,23 @@
 """
-Execute a grid of runs: in local worker processes (one process per run, one torch thread each) or as tasks on a Ray
-cluster.
+Execute a grid of runs with :func:`run_grid`: one loop (skip what is done, start runs up to the capacity, collect
+their results, show progress, stop on Ctrl-C or SIGTERM) over one :class:`Scheduler` interface, with two schedulers
+behind it: local worker processes (the default) or tasks on a Ray cluster (``ray_address``).
 
 Local workers are forked from a ``forkserver`` that has imported torch, SB3 and sb3_soup once (on platforms without
-it, they are spawned), so a run's process starts in a fraction of a second rather than re-importing torch.
+it, they are spawned), so a run's process starts in a fraction of a second rather than re-importing torch (a local
+Ray instance takes several seconds to start, and its workers import torch themselves).
 
 Each local run has a process of its own, so a run whose process dies (killed, out of memory, a crash in native code)
-is reported as failed with its exit code while the others go on. Ctrl-C (locally) asks every running run to stop at
-its next step and checkpoint; re-running the same command resumes them. Finished runs are skipped without starting a
-worker, and runs that another ``run`` command is training (see :func:`~sb3_soup.experiments.runner.run_lock`) are
-reported ``busy``.
+is reported as failed with its exit code while the others go on. Ctrl-C or SIGTERM (locally) asks every running run
+to stop at the end of its rollout and checkpoint; re-running the same command resumes them. Finished runs are skipped
+without starting a worker, and runs that another ``run`` command is training (see
+:func:`~sb3_soup.experiments.runner.run_lock`) are reported ``busy``.
 """
 
 from __future__ import annotations
 
+import abc
+import contextlib
 import dataclasses
 import multiprocessing as mp
 import multiprocessing.connection
@@ -22,7 +26,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +51,64 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def _failed(spec: Any, message: str) -> dict[str, Any]:
+    """Record and return the failure of a run whose worker died without reporting (so run_one could not)."""
+    run_dir = Path(spec.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    runner.write_json(run_dir / runner.ERROR_FILE, {"error": message, "time": time.time()})
+    status = runner.read_json(run_dir / runner.STATUS_FILE) or {}
+    runner.report_status(run_dir, "failed", int(status.get("step", 0)), spec.timesteps, error=message)
+    return {"key": spec.key, "run_dir": spec.run_dir, "status": "failed", "step": 0, "error": message}
+
+
+class Scheduler(abc.ABC):
+    """
+    Where the runs of a grid execute. :func:`run_grid` submits runs while fewer than :attr:`capacity` are running and
+    collects the results of those that ended.
+
+    :param capacity: how many runs may execute at once
+    """
+
+    stop_message = ""
+    """What Ctrl-C does to the running runs, shown when it is pressed."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+
+    @property
+    @abc.abstractmethod
+    def running(self) -> int:
+        """How many runs are executing."""
+
+    @abc.abstractmethod
+    def submit(self, spec: Any) -> None:
+        """
+        Start a run.
+
+        :param spec: its :class:`~sb3_soup.experiments.grid.RunSpec`
+        """
+
+    @abc.abstractmethod
+    def wait(self, timeout: float) -> list[tuple[Any, dict[str, Any]]]:
+        """
+        :param timeout: seconds to wait at most for a run to end
+        :return: the runs that ended, each with its result (see :func:`~sb3_soup.experiments.runner.run_one`)
+        """
+
+    @abc.abstractmethod
+    def stop(self) -> bool:
+        """
+        Stop the running runs (Ctrl-C or SIGTERM).
+
+        :return: True when they stop cleanly and their results are still to be collected, False when they were
+            cancelled (the caller gives up on them)
+        """
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release what the scheduler holds (after a second Ctrl-C or an error: end the runs still executing)."""
+
+
 def _context() -> Any:
     """The multiprocessing context of local workers: a forkserver with the heavy modules preloaded, else spawn."""
     if "forkserver" not in mp.get_all_start_methods():  # pragma: no cover - Windows
@@ -56,15 +118,10 @@ def _context() -> Any:
     return context
 
 
-def _limit_threads() -> None:
-    """One BLAS/OpenMP/torch thread per worker: the grid's parallelism is across runs."""
-    for name in _THREAD_VARIABLES:
-        os.environ[name] = "1"
-
-
 def _worker_main(spec_data: dict[str, Any], stop_event: Any, connection: Any) -> None:
     """A local worker process: thread limits, Ctrl-C turned into a clean resumable stop, one run, its result sent."""
-    _limit_threads()
+    for name in _THREAD_VARIABLES:  # one thread per worker: the grid's parallelism is across runs
+        os.environ[name] = "1"
     runner.STOP_REQUESTED = stop_event
 
     def request_stop(signum: int, frame: Any) -> None:
@@ -76,16 +133,6 @@ def _worker_main(spec_data: dict[str, Any], stop_event: Any, connection: Any) ->
     connection.close()
 
 
-def _failed(spec: Any, message: str) -> dict[str, Any]:
-    """Record and return the failure of a run whose worker died without reporting (so run_one could not)."""
-    run_dir = Path(spec.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    runner.write_json(run_dir / runner.ERROR_FILE, {"error": message, "time": time.time()})
-    status = runner.read_json(run_dir / runner.STATUS_FILE) or {}
-    runner.report_status(run_dir, "failed", int(status.get("step", 0)), spec.timesteps, error=message)
-    return {"key": spec.key, "run_dir": spec.run_dir, "status": "failed", "step": 0, "error": message}
-
-
 def _exit_message(exitcode: int | None) -> str:
     if exitcode is not None and exitcode < 0:
         try:
@@ -95,8 +142,162 @@ def _exit_message(exitcode: int | None) -> str:
         return f"worker process killed by {name}" + (" (out of memory?)" if name == "SIGKILL" else "")
     return (
         f"worker process exited with code {exitcode} without a result (its error is above; a script that calls "
-        "run_local needs `if __name__ == '__main__':`)"
+        "run_grid needs `if __name__ == '__main__':`)"
     )
+
+
+@dataclasses.dataclass
+class _Worker:
+    spec: Any
+    process: Any
+    connection: Any
+
+
+class LocalProcesses(Scheduler):
+    """
+    One worker process per run, forked from a forkserver (see the module's docstring). Stopping asks every running run
+    to stop at the end of its rollout and checkpoint.
+
+    :param capacity: how many runs at once
+    """
+
+    stop_message = "Interrupted: checkpointing the running runs (Ctrl-C again to abort)."
+
+    def __init__(self, capacity: int) -> None:
+        super().__init__(capacity)
+        self.context = _context()
+        self.stop_event = self.context.Event()
+        self.workers: list[_Worker] = []
+
+    @property
+    def running(self) -> int:
+        return len(self.workers)
+
+    def submit(self, spec: Any) -> None:
+        receive, send = self.context.Pipe(duplex=False)
+        process = self.context.Process(
+            target=_worker_main, args=(dataclasses.asdict(spec), self.stop_event, send), name=f"run {spec.key}"
+        )
+        process.start()
+        send.close()  # the child holds the only sending end: a dead child means end-of-file here
+        self.workers.append(_Worker(spec, process, receive))
+
+    def wait(self, timeout: float) -> list[tuple[Any, dict[str, Any]]]:
+        # A worker's pipe turns readable when it sends its result, or at end-of-file when it dies.
+        ready = mp.connection.wait([worker.connection for worker in self.workers], timeout=timeout)
+        ended = [worker for worker in self.workers if worker.connection in ready]
+        for worker in ended:
+            self.workers.remove(worker)
+        return [(worker.spec, self._collect(worker)) for worker in ended]
+
+    @staticmethod
+    def _collect(worker: _Worker) -> dict[str, Any]:
+        """The result a worker sent (it then exits), or a failure when it died without sending one."""
+        try:
+            result = worker.connection.recv()
+        except (EOFError, OSError):
+            result = None
+        worker.connection.close()
+        worker.process.join()
+        if result is None:
+            return _failed(worker.spec, _exit_message(worker.process.exitcode))
+        return result
+
+    def stop(self) -> bool:
+        self.stop_event.set()
+        return True
+
+    def close(self) -> None:
+        for worker in self.workers:  # only after a second Ctrl-C or an error: do not leave orphans behind
+            worker.process.terminate()
+            worker.process.join(10)
+
+
+class RayTasks(Scheduler):
+    """
+    One Ray task (one CPU) per run. ``address``: ``"auto"`` (the cluster this machine belongs to, after
+    ``ray start``), ``"host:port"``, ``"ray://host:10001"`` (Ray Client, needs ``ray[client]``), or ``"local"`` to
+    start a private single-machine instance. The ``sb3_soup`` package is shipped to the workers
+    (``runtime_env.py_modules``); its dependencies (torch, SB3, gymnasium, MuJoCo) must be installed on every node.
+    A task that raises or whose worker dies is reported as failed. Stopping cancels the tasks: they resume from their
+    last periodic checkpoint (``--checkpoint-freq``).
+
+    :param capacity: how many runs at once
+    :param address: the cluster's address
+    :param cpus: the CPUs of a ``"local"`` instance
+    """
+
+    stop_message = "Interrupted: the runs resume from their last periodic checkpoint."
+
+    def __init__(self, capacity: int, address: str, cpus: int) -> None:
+        try:
+            import ray
+        except ImportError as error:
+            raise ImportError("The Ray backend needs ray: pip install 'sb3-soup[ray]'") from error
+        import sb3_soup
+
+        super().__init__(capacity)
+        self.ray = ray
+        self.started_here = not ray.is_initialized()
+        if self.started_here:
+            runtime_env = {
+                "py_modules": [str(Path(sb3_soup.__file__).resolve().parent)],
+                "env_vars": {name: "1" for name in _THREAD_VARIABLES},
+            }
+            init_kwargs: dict[str, Any] = {"runtime_env": runtime_env, "log_to_driver": False}
+            if address == "local":
+                init_kwargs.update(num_cpus=cpus, include_dashboard=False)
+            ray.init(address=address, **init_kwargs)
+        self.remote_run = ray.remote(num_cpus=1, max_retries=0)(runner.run_one)
+        self.pending: dict[Any, Any] = {}
+
+    @property
+    def running(self) -> int:
+        return len(self.pending)
+
+    def submit(self, spec: Any) -> None:
+        self.pending[self.remote_run.remote(dataclasses.asdict(spec))] = spec
+
+    def wait(self, timeout: float) -> list[tuple[Any, dict[str, Any]]]:
+        ready, _ = self.ray.wait(list(self.pending), num_returns=1, timeout=timeout)
+        ended = []
+        for ref in ready:
+            spec = self.pending.pop(ref)
+            try:
+                result = self.ray.get(ref)
+            except Exception as error:  # the task or its worker died
+                result = _failed(spec, f"{type(error).__name__}: {error}")
+            ended.append((spec, result))
+        return ended
+
+    def stop(self) -> bool:
+        for ref in self.pending:
+            self.ray.cancel(ref)
+        return False
+
+    def close(self) -> None:
+        if self.started_here:
+            self.ray.shutdown()
+
+
+def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigterm_stops_as_ctrl_c() -> Iterator[None]:
+    """
+    SIGTERM (``kill PID``, and what stops a command run in the background, where SIGINT is ignored) stops as Ctrl-C
+    does. Signal handlers belong to the main thread: from another thread (a caller's), SIGTERM is left alone.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _skip_finished(specs: Sequence[Any]) -> tuple[dict[str, dict[str, Any]], list[Any]]:
@@ -111,157 +312,59 @@ def _skip_finished(specs: Sequence[Any]) -> tuple[dict[str, dict[str, Any]], lis
     return results, [spec for spec in specs if spec.key not in results]
 
 
-@dataclasses.dataclass
-class _Worker:
-    spec: Any
-    process: Any
-    connection: Any
-
-
-def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
-
-
-def run_local(specs: Sequence[Any], workers: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
+def run_grid(
+    specs: Sequence[Any], workers: int | None = None, progress: bool = True, ray_address: str | None = None
+) -> list[dict[str, Any]]:
     """
-    Run the grid in worker processes, one per run, at most ``workers`` at a time.
+    Run a grid: each run in a local worker process, or as a Ray task when ``ray_address`` is given (see
+    :class:`RayTasks`; the runs' folders are made absolute: on a multi-node cluster they must be on a filesystem that
+    every node mounts at the same path, which the progress display and ``report`` read too).
 
     :param specs: the runs
-    :param workers: how many at once (default: the number of cores, see :func:`available_cores`)
+    :param workers: at most this many at once (default: locally, the number of cores, see :func:`available_cores`;
+        on Ray, as many as the cluster has CPUs for)
     :param progress: show progress (bars in a terminal, lines otherwise)
+    :param ray_address: the Ray cluster's address, or None to run locally
     :return: one result per run (see :func:`~sb3_soup.experiments.runner.run_one`), in the order of ``specs``
     """
+    if ray_address is not None:
+        specs = [dataclasses.replace(spec, run_dir=str(Path(spec.run_dir).resolve())) for spec in specs]
     results, todo = _skip_finished(specs)
     if not todo:
         return [results[spec.key] for spec in specs]
-    workers = max(1, min(workers or available_cores(), len(todo)))
-    context = _context()
-    stop_event = context.Event()
+    scheduler: Scheduler
+    if ray_address is not None:
+        scheduler = RayTasks(workers or len(todo), ray_address, cpus=workers or available_cores())
+    else:
+        scheduler = LocalProcesses(max(1, min(workers or available_cores(), len(todo))))
     board = ProgressBoard(todo, progress_mode(progress))
     queue = list(todo)
-    running: list[_Worker] = []
-    interrupted = False
-    # SIGTERM (`kill PID`, and what stops a command run in the background, where SIGINT is ignored) stops as Ctrl-C does
-    in_main_thread = threading.current_thread() is threading.main_thread()  # where Python lets a handler be set
-    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt) if in_main_thread else None
+    stopping = False
     try:
-        while queue or running:
-            try:
-                while queue and len(running) < workers and not stop_event.is_set():
-                    spec = queue.pop(0)
-                    receive, send = context.Pipe(duplex=False)
-                    process = context.Process(
-                        target=_worker_main, args=(dataclasses.asdict(spec), stop_event, send), name=f"run {spec.key}"
-                    )
-                    process.start()
-                    send.close()  # the child holds the only sending end: a dead child means end-of-file here
-                    running.append(_Worker(spec, process, receive))
-                if stop_event.is_set():  # interrupted: what never started stays to do
-                    for spec in queue:
-                        results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "interrupted", "step": 0}
-                        board.finish(spec.key, results[spec.key])
-                    queue.clear()
-                # A worker's pipe turns readable when it sends its result, or at end-of-file when it dies.
-                ready = mp.connection.wait([worker.connection for worker in running], timeout=_POLL_SECONDS)
-            except KeyboardInterrupt:
-                if interrupted:
-                    raise
-                interrupted = True
-                stop_event.set()
-                tqdm.write("Interrupted: checkpointing the running runs (Ctrl-C again to abort).", file=sys.stderr)
-                continue
-            for worker in [worker for worker in running if worker.connection in ready]:
-                running.remove(worker)
-                results[worker.spec.key] = _collect(worker)
-                board.finish(worker.spec.key, results[worker.spec.key])
-            board.poll()
-    finally:
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, previous)
-        for worker in running:  # only after a second Ctrl-C or an error here: do not leave orphans behind
-            worker.process.terminate()
-            worker.process.join(10)
-        board.close()
-    return [results[spec.key] for spec in specs]
-
-
-def _collect(worker: _Worker) -> dict[str, Any]:
-    """The result a worker sent (it then exits), or a failure when it died without sending one."""
-    try:
-        result = worker.connection.recv()
-    except (EOFError, OSError):
-        result = None
-    worker.connection.close()
-    worker.process.join()
-    if result is None:
-        return _failed(worker.spec, _exit_message(worker.process.exitcode))
-    return result
-
-
-def run_ray(specs: Sequence[Any], address: str, workers: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """
-    Run the grid as Ray tasks (one CPU each) on a Ray cluster. ``address``: ``"auto"`` (the cluster this machine
-    belongs to, after ``ray start``), ``"host:port"``, ``"ray://host:10001"`` (Ray Client, needs ``ray[client]``),
-    or ``"local"`` to start a private single-machine instance. The ``sb3_soup`` package is shipped to the workers
-    (``runtime_env.py_modules``); its dependencies (torch, SB3, gymnasium, MuJoCo) must be installed on every node.
-    The runs write to their folders, made absolute here: on a multi-node cluster ``--out`` must be on a filesystem
-    that every node mounts at the same path (the progress display and ``report`` read it too).
-
-    A task that raises or whose worker dies is reported as failed and the others go on. Ctrl-C cancels the tasks;
-    they resume from their last periodic checkpoint (``--checkpoint-freq``) on the next ``run``.
-
-    :param specs: the runs
-    :param address: the cluster's address
-    :param workers: at most this many runs at once (default: as many as the cluster has CPUs for)
-    :param progress: show progress (bars in a terminal, lines otherwise)
-    :return: one result per run, in the order of ``specs``
-    """
-    try:
-        import ray
-    except ImportError as error:
-        raise ImportError("The Ray backend needs ray: pip install 'sb3-soup[ray]'") from error
-    import sb3_soup
-
-    specs = [dataclasses.replace(spec, run_dir=str(Path(spec.run_dir).resolve())) for spec in specs]
-    results, todo = _skip_finished(specs)
-    if not todo:
-        return [results[spec.key] for spec in specs]
-    started_here = not ray.is_initialized()
-    if started_here:
-        runtime_env = {
-            "py_modules": [str(Path(sb3_soup.__file__).resolve().parent)],
-            "env_vars": {name: "1" for name in _THREAD_VARIABLES},
-        }
-        init_kwargs: dict[str, Any] = {"runtime_env": runtime_env, "log_to_driver": False}
-        if address == "local":
-            init_kwargs.update(num_cpus=workers or available_cores(), include_dashboard=False)
-        ray.init(address=address, **init_kwargs)
-    remote_run = ray.remote(num_cpus=1, max_retries=0)(runner.run_one)
-    limit = workers or len(todo)
-    queue = list(todo)
-    pending: dict[Any, Any] = {}
-    board = ProgressBoard(todo, progress_mode(progress))
-    try:
-        while queue or pending:
-            while queue and len(pending) < limit:
-                spec = queue.pop(0)
-                pending[remote_run.remote(dataclasses.asdict(spec))] = spec
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=_POLL_SECONDS)
-            for ref in ready:
-                spec = pending.pop(ref)
+        with _sigterm_stops_as_ctrl_c():
+            while queue or scheduler.running:
                 try:
-                    results[spec.key] = ray.get(ref)
-                except Exception as error:  # the task or its worker died
-                    results[spec.key] = _failed(spec, f"{type(error).__name__}: {error}")
-                board.finish(spec.key, results[spec.key])
-            board.poll()
-    except KeyboardInterrupt:
-        for ref in pending:
-            ray.cancel(ref)
-        tqdm.write("Interrupted: the runs resume from their last periodic checkpoint.", file=sys.stderr)
-        raise
+                    while queue and not stopping and scheduler.running < scheduler.capacity:
+                        scheduler.submit(queue.pop(0))
+                    if stopping:  # what never started stays to do
+                        for spec in queue:
+                            results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "interrupted", "step": 0}
+                            board.finish(spec.key, results[spec.key])
+                        queue.clear()
+                    ended = scheduler.wait(_POLL_SECONDS)
+                except KeyboardInterrupt:
+                    if stopping:
+                        raise
+                    stopping = True
+                    tqdm.write(scheduler.stop_message, file=sys.stderr)
+                    if not scheduler.stop():
+                        raise
+                    continue
+                for spec, result in ended:
+                    results[spec.key] = result
+                    board.finish(spec.key, result)
+                board.poll()
     finally:
+        scheduler.close()
         board.close()
-        if started_here:
-            ray.shutdown()
     return [results[spec.key] for spec in specs]

@@ -1,5 +1,6 @@
 """
-Progress of a grid, fed by the runs' ``status.json`` files: in a terminal, one overall bar plus one bar per run;
+Progress of a grid, fed by the runs' ``status.json`` files: in a terminal, one overall bar plus one bar per run
+(tqdm's public API: a run's bar starts at the step it resumes from, and its clock when it starts running);
 elsewhere (a log file, a pipe, CI), plain lines: one when a run ends and a summary of the running ones now and then.
 """
 
@@ -13,7 +14,8 @@ from typing import Any, TextIO
 
 from tqdm.auto import tqdm
 
-from sb3_soup.experiments.runner import STATUS_FILE, read_json
+from sb3_soup.checkpoint import find_checkpoints
+from sb3_soup.experiments.runner import CHECKPOINT_DIR, STATUS_FILE, read_json
 
 #: Seconds between two summary lines in line mode.
 LINE_INTERVAL_S = 300.0
@@ -51,22 +53,27 @@ class ProgressBoard:
         self.mode = mode
         self.stream = stream if stream is not None else sys.stderr
         self.line_interval = line_interval
-        self.steps = {spec.key: 0 for spec in self.specs}
+        self.steps = {spec.key: _resume_step(spec) for spec in self.specs}
         self.totals = {spec.key: spec.timesteps for spec in self.specs}
         self.status = {spec.key: "pending" for spec in self.specs}
         self.ended: dict[str, dict[str, Any]] = {}
         self.started = self.last_line = time.monotonic()
         self.bars: dict[str, Any] = {}
+        self.seen: set[str] = set()
         if mode != "bars":
             return
         total = sum(spec.timesteps for spec in self.specs)
         common = dict(unit="step", unit_scale=True, dynamic_ncols=True, file=self.stream, leave=True)
-        self.overall = tqdm(total=total, desc=f"all {len(self.specs)} runs", position=0, **common)
+        self.overall = tqdm(
+            total=total, initial=sum(self.steps.values()), desc=f"all {len(self.specs)} runs", position=0, **common
+        )
         width = max((len(spec.key) for spec in self.specs), default=10)
         for position, spec in enumerate(self.specs, start=1):
-            self.bars[spec.key] = tqdm(total=spec.timesteps, desc=spec.key.ljust(width), position=position, **common)
-            self.bars[spec.key].set_postfix_str("pending")
-        self.seen: set[str] = set()
+            bar = tqdm(
+                total=spec.timesteps, initial=self.steps[spec.key], desc=spec.key.ljust(width), position=position, **common
+            )
+            bar.set_postfix_str("pending")
+            self.bars[spec.key] = bar
 
     @property
     def enabled(self) -> bool:
@@ -90,6 +97,7 @@ class ProgressBoard:
         :param step: its steps done
         :param status: its status, shown next to the bar
         """
+        delta = step - self.steps[key]
         self.steps[key] = step
         if status:
             self.status[key] = status
@@ -97,16 +105,14 @@ class ProgressBoard:
             return
         bar = self.bars[key]
         if status == "running" and key not in self.seen:
-            # The run starts (or resumes at `step`) now: rate and ETA count from here, not from the grid's start.
+            # The run starts (or resumes) now: its time, rate and ETA count from here, not from the grid's start.
             self.seen.add(key)
-            bar.start_t = bar.last_print_t = bar._time()
-            bar.initial = bar.last_print_n = step
-            self.overall.initial += step
-        bar.n = step
+            bar.unpause()
+        bar.update(delta)
         if status:
             bar.set_postfix_str(status, refresh=False)
         bar.refresh()
-        self.overall.n = sum(self.steps.values())
+        self.overall.update(delta)
         self.overall.set_postfix_str(self._counts(), refresh=False)
         self.overall.refresh()
 
@@ -153,3 +159,9 @@ class ProgressBoard:
             self.overall.close()
             for bar in self.bars.values():
                 bar.close()
+
+
+def _resume_step(spec: Any) -> int:
+    """The step a run starts from: its newest checkpoint's, 0 without one."""
+    checkpoints = find_checkpoints(Path(spec.run_dir) / CHECKPOINT_DIR)
+    return checkpoints[0].step if checkpoints else 0

@@ -20,7 +20,6 @@ import json
 import math
 import os
 import re
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -34,9 +33,10 @@ from sb3_soup.experiments.plots import Curve, plot_confidence, plot_curves, plot
 from sb3_soup.experiments.runner import (
     DONE_FILE,
     ERROR_FILE,
-    LEGACY_HEARTBEAT_S,
+    LOCKING,
     SPEC_FILE,
     STATUS_FILE,
+    busy_reason,
     read_json,
     write_json,
 )
@@ -53,7 +53,7 @@ class RunRecord:
 
     :param spec: its spec (``run_dir`` is its folder in the experiment folder being reported)
     :param status: ``"finished"``, ``"failed"``, ``"interrupted"``, ``"running"``, ``"stalled"`` (its status says
-        running, but it has not been updated for a long time: the process died) or ``"missing"`` (not started)
+        running, but no process holds its lock: the process training it died) or ``"missing"`` (not started)
     :param step: steps done
     :param error: the error of a failed run
     """
@@ -124,7 +124,7 @@ def _run_status(run_dir: Path) -> tuple[str, int, str | None]:
     if not status:
         return "missing", 0, None
     state = str(status.get("status", "running"))
-    if state == "running" and time.time() - float(status.get("time", 0.0)) > LEGACY_HEARTBEAT_S:
+    if state == "running" and LOCKING and busy_reason(run_dir) is None:
         state = "stalled"
     return state, step, None
 

@@ -3,8 +3,9 @@ Train one (model, seed) run in the current process: build or resume the model, l
 
 The run's folder holds ``spec.json`` (its :class:`~sb3_soup.experiments.grid.RunSpec`), ``monitor.csv``,
 ``progress.csv``, ``evaluations.csv`` (deterministic evaluations every ``eval_freq`` steps, as SB3's ``EvalCallback``),
-``status.json`` (step reached, for the progress bars), ``checkpoints/`` while it runs, and at the
-end ``model.zip`` plus ``done.json``, or ``error.json`` when it failed. While a process trains the run it holds an
+``status.json`` (step reached, for the progress bars, and the time spent training), ``checkpoints/`` while it runs
+(:mod:`sb3_soup.checkpoint`'s, the newest only: a stopped or killed run resumes exactly from it), and at the end
+``model.zip`` plus ``done.json``, or ``error.json`` when it failed. While a process trains the run it holds an
 exclusive lock on ``run.lock``, so that two ``run`` commands given the same folder (e.g. two suites sharing runs)
 never train one run twice at once: the second reports it ``busy``. Heavy imports (torch, SB3) happen inside
 :func:`run_one` so that worker processes can limit torch's threads first.
@@ -13,6 +14,7 @@ never train one run twice at once: the second reports it ``busy``. Heavy imports
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import shutil
@@ -20,7 +22,7 @@ import socket
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,9 +40,9 @@ DONE_FILE = "done.json"
 ERROR_FILE = "error.json"
 FINAL_MODEL = "model.zip"
 LOCK_FILE = "run.lock"
-# A run folder without a lock file comes from an older version of the runner, which only left a heartbeat: its
-# status.json, rewritten every second or so while it trains. A "running" status younger than this counts as alive.
-LEGACY_HEARTBEAT_S = 600.0
+CHECKPOINT_DIR = "checkpoints"
+LOCKING = fcntl is not None
+"""Whether runs are locked on this platform (``flock``; not on Windows)."""
 
 # Set by a signal handler or by the parent (see parallel.py): finish the current step, checkpoint, stop.
 STOP_REQUESTED = threading.Event()
@@ -48,15 +50,15 @@ STOP_REQUESTED = threading.Event()
 
 def write_json(path: str | os.PathLike, data: dict[str, Any]) -> None:
     """
-    Write JSON atomically (temporary file, then rename), so readers never see half a file.
+    Write JSON atomically (:func:`sb3_soup.persistence.atomic_write`), so readers never see half a file.
 
     :param path: the file
     :param data: the data
     """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str))
-    os.replace(tmp, path)
+    from sb3_soup.persistence import atomic_write  # it brings torch and SB3: imported when needed (see the module doc)
+
+    text = json.dumps(data, indent=2, sort_keys=True, default=str)
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def read_json(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -165,18 +167,17 @@ def evaluate(model: Any, env: Any, step: int, spec: Any, run_dir: Path) -> None:
     logs.append_evaluation(run_dir, step, list(returns), list(lengths))  # type: ignore[arg-type]
 
 
-def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any, eval_env: Any) -> Any:
-    """The callback doing progress reports, evaluations, periodic checkpoints and resumable stops."""
+def _make_callback(spec: Any, run_dir: Path, start_step: int, wall_time: Callable[[], float], eval_env: Any) -> Any:
+    """The callback doing progress reports, evaluations and resumable stops."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from sb3_soup.experiments import checkpointing
+    from sb3_soup.checkpoint import StopTraining
 
     class RunCallback(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
             self.last_report = 0.0
             self.stopped = False
-            self.last_checkpoint = start_step
 
         def _on_step(self) -> bool:
             if spec.eval_freq > 0 and self.num_timesteps % spec.eval_freq == 0:
@@ -184,7 +185,7 @@ def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any, eval_e
             now = time.monotonic()
             if now - self.last_report > 1.0:
                 self.last_report = now
-                report_status(run_dir, "running", self.num_timesteps, spec.timesteps)
+                report_status(run_dir, "running", self.num_timesteps, spec.timesteps, wall_time_s=wall_time())
             new_steps = self.num_timesteps - start_step
             if STOP_REQUESTED.is_set() or (spec.stop_after is not None and new_steps >= spec.stop_after):
                 self.stopped = True  # leave at the end of this rollout, where a checkpoint resumes exactly
@@ -193,11 +194,7 @@ def _make_callback(spec: Any, run_dir: Path, start_step: int, state: Any, eval_e
         def _on_rollout_start(self) -> None:
             # Between two rollouts: the model, its buffer and the env agree (see sb3_soup.checkpoint)
             if self.stopped:
-                raise checkpointing.StopTraining
-            step = self.model.num_timesteps
-            if spec.checkpoint_freq > 0 and step // spec.checkpoint_freq > self.last_checkpoint // spec.checkpoint_freq:
-                checkpointing.save_checkpoint(self.model, run_dir, state())
-                self.last_checkpoint = step
+                raise StopTraining
 
     return RunCallback()
 
@@ -210,42 +207,19 @@ def report_status(run_dir: str | os.PathLike, status: str, step: int, total: int
     :param status: ``"running"``, ``"finished"``, ``"interrupted"`` or ``"failed"``
     :param step: steps done
     :param total: steps in all
-    :param extra: more fields
+    :param extra: more fields, e.g. ``wall_time_s``, the seconds spent training the run so far (when it is not given,
+        as for a failure, the previous status' value is kept)
     """
+    path = Path(run_dir) / STATUS_FILE
     data = {"status": status, "step": int(step), "total": int(total), "time": time.time()}
+    if "wall_time_s" not in extra:
+        data["wall_time_s"] = (read_json(path) or {}).get("wall_time_s", 0.0)
     data.update(pid=os.getpid(), host=socket.gethostname(), **extra)
-    write_json(Path(run_dir) / STATUS_FILE, data)
-
-
-def legacy_runs_active(out: str | os.PathLike) -> list[str]:
-    """
-    The runs of an experiment folder that a runner older than the run lock is training right now: a "running"
-    status fresher than :data:`LEGACY_HEARTBEAT_S` and no lock file. Such a ``run`` command also holds runs it has not
-    started yet, and does not check for locks before it starts them.
-
-    :param out: the experiment folder
-    :return: their ``model/seed_N`` names
-    """
-    active = []
-    for status_file in sorted(Path(out).glob(f"*/seed_*/{STATUS_FILE}")):
-        status = read_json(status_file) or {}
-        fresh = time.time() - float(status.get("time", 0.0)) < LEGACY_HEARTBEAT_S
-        if status.get("status") == "running" and fresh and not (status_file.parent / LOCK_FILE).exists():
-            active.append(f"{status_file.parent.parent.name}/{status_file.parent.name}")
-    return active
+    write_json(path, data)
 
 
 class RunBusy(RuntimeError):
     """Another process is training this run."""
-
-
-def _legacy_busy(run_dir: Path) -> str | None:
-    """Why a run folder without a lock file (previous runner version) counts as busy: a fresh heartbeat."""
-    status = read_json(run_dir / STATUS_FILE) or {}
-    age = time.time() - float(status.get("time", 0.0))
-    if status.get("status") == "running" and age < LEGACY_HEARTBEAT_S:
-        return f"{run_dir} is being trained by another process (status updated {age:.0f} s ago)"
-    return None
 
 
 def busy_reason(run_dir: str | os.PathLike) -> str | None:
@@ -257,9 +231,7 @@ def busy_reason(run_dir: str | os.PathLike) -> str | None:
     :return: why it is busy, ``None`` when it is not
     """
     path = Path(run_dir) / LOCK_FILE
-    if not path.exists():
-        return _legacy_busy(Path(run_dir))
-    if fcntl is None:
+    if fcntl is None or not path.exists():
         return None
     with open(path) as stream:
         try:
@@ -277,14 +249,10 @@ def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
     process ends, however it ends, so a crashed run never stays locked.
 
     :param run_dir: the run's folder
-    :raises RunBusy: when another process holds it, or when a run folder of an older runner version (no lock file)
-        has a fresh "running" heartbeat
+    :raises RunBusy: when another process holds it
     """
     run_dir = Path(run_dir)
     path = run_dir / LOCK_FILE
-    reason = None if path.exists() else _legacy_busy(run_dir)
-    if reason is not None:
-        raise RunBusy(reason)
     if fcntl is None:
         yield
         return
@@ -362,7 +330,7 @@ def run_one(spec_data: dict[str, Any]) -> dict[str, Any]:
                 return {**result, "status": "skipped", "step": done.get("timesteps", spec.timesteps)}
             if STOP_REQUESTED.is_set():
                 return {**result, "status": "interrupted", "step": 0}
-            (run_dir / SPEC_FILE).write_text(spec.to_json())
+            write_json(run_dir / SPEC_FILE, dataclasses.asdict(spec))
             (run_dir / ERROR_FILE).unlink(missing_ok=True)
             status, step = _train(spec, run_dir)
             return {**result, "status": status, "step": step}
@@ -382,56 +350,62 @@ def _train(spec: Any, run_dir: Path) -> tuple[str, int]:
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from sb3_soup.experiments import checkpointing, logs
+    from sb3_soup.checkpoint import (
+        ResumableCheckpointCallback,
+        StopTraining,
+        latest_checkpoint,
+        load_checkpoint,
+        save_checkpoint,
+    )
+    from sb3_soup.experiments import logs
 
     th.set_num_threads(1)
+    checkpoints = run_dir / CHECKPOINT_DIR
+    checkpoint = latest_checkpoint(checkpoints)
+    earlier = (read_json(run_dir / STATUS_FILE) or {}).get("wall_time_s", 0.0) if checkpoint is not None else 0.0
     started = time.time()
-    checkpoint = checkpointing.latest_checkpoint(run_dir)
-    earlier_wall_time = float(checkpoint.state.get("wall_time_s", 0.0)) if checkpoint is not None else 0.0
 
-    def state() -> dict[str, Any]:
-        """What a checkpoint records besides the model: episodes logged so far, training time so far."""
-        return {"episodes": logs.count_episodes(run_dir), "wall_time_s": earlier_wall_time + time.time() - started}
+    def wall_time() -> float:
+        """Seconds spent training the run, in all the sessions since its start from step 0."""
+        return float(earlier) + time.time() - started
 
-    if checkpoint is not None:
-        logs.truncate_monitor(run_dir, int(checkpoint.state.get("episodes", 0)))
-        logs.truncate_progress(run_dir, checkpoint.step)
-        logs.truncate_evaluations(run_dir, checkpoint.step)
+    if checkpoint is not None:  # the logs go back to the checkpoint's step
+        for truncate in (logs.truncate_monitor, logs.truncate_progress, logs.truncate_evaluations):
+            truncate(run_dir, checkpoint.step)
     else:  # nothing to continue from: start the logs afresh
         for name in (logs.MONITOR_FILE, logs.PROGRESS_FILE, logs.EVALUATIONS_FILE):
             (run_dir / name).unlink(missing_ok=True)
     env = DummyVecEnv([lambda: logs.monitor_env(gym.make(spec.env_id), run_dir)])
     eval_env = DummyVecEnv([lambda: Monitor(gym.make(spec.env_id))])
     try:
-        if checkpoint is not None:
-            # The run goes on exactly where it stopped (random streams and env state restored); checkpoints from before
-            # training states were saved start a fresh random stream instead of replaying the first one
-            model = checkpointing.resume(
-                checkpoint, algo_class(spec.algo), env, fallback_seed=spec.seed + checkpoint.step, device="cpu"
-            )
-            start_step = checkpoint.step
+        if checkpoint is not None:  # the run goes on exactly where it stopped
+            model = load_checkpoint(checkpoint, env, algo_class(spec.algo), device="cpu")
         else:
             model = build_model(spec, env)
-            start_step = 0
+        start_step = int(model.num_timesteps)
         model.set_logger(logs.make_logger(run_dir))
-        report_status(run_dir, "running", start_step, spec.timesteps)
-        callback = _make_callback(spec, run_dir, start_step, state, eval_env)
-        remaining = checkpointing.remaining_steps(model, spec.timesteps)
-        if remaining > 0:
+        report_status(run_dir, "running", start_step, spec.timesteps, wall_time_s=wall_time())
+        callbacks = [_make_callback(spec, run_dir, start_step, wall_time, eval_env)]
+        if spec.checkpoint_freq > 0:
+            callbacks.append(ResumableCheckpointCallback(spec.checkpoint_freq, str(checkpoints), keep_last=1))
+        if start_step < spec.timesteps:
             try:
-                model.learn(remaining, callback=callback, log_interval=1, reset_num_timesteps=checkpoint is None)
-            except checkpointing.StopTraining:
+                model.learn(
+                    spec.timesteps - start_step, callback=callbacks, log_interval=1, reset_num_timesteps=checkpoint is None
+                )
+            except StopTraining:
                 pass  # stopped between two rollouts: checkpointed below
         step = int(model.num_timesteps)
         if step < spec.timesteps:
-            checkpointing.save_checkpoint(model, run_dir, state())
-            report_status(run_dir, "interrupted", step, spec.timesteps)
+            save_checkpoint(model, checkpoints, keep_last=1)
+            report_status(run_dir, "interrupted", step, spec.timesteps, wall_time_s=wall_time())
             return "interrupted", step
         model.save(run_dir / FINAL_MODEL)
     finally:
         env.close()
         eval_env.close()
-    write_json(run_dir / DONE_FILE, {"timesteps": step, **state(), "finished_at": time.time()})
-    shutil.rmtree(run_dir / checkpointing.CHECKPOINT_DIR, ignore_errors=True)
-    report_status(run_dir, "finished", step, spec.timesteps)
+    done = {"timesteps": step, "episodes": logs.count_episodes(run_dir), "wall_time_s": wall_time()}
+    write_json(run_dir / DONE_FILE, {**done, "finished_at": time.time()})
+    shutil.rmtree(checkpoints, ignore_errors=True)
+    report_status(run_dir, "finished", step, spec.timesteps, wall_time_s=done["wall_time_s"])
     return "finished", step
