@@ -45,19 +45,48 @@ def _single_thread() -> None:
         os.environ[var] = "1"
 
 
+# What a SOUP row trains besides K and its confidence (the paper's update, unless a row says otherwise)
+PAPER_SCHEME: dict[str, Any] = dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)
+
+
+def soup_defaults() -> dict[str, Any]:
+    """SOUP's default training scheme and confidence (the ``defaults`` rows)."""
+    import inspect
+
+    from sb3_soup import SOUP
+    from sb3_soup.presets import DEFAULT_CONFIDENCE
+
+    parameters = inspect.signature(SOUP.__init__).parameters
+    return dict({key: parameters[key].default for key in PAPER_SCHEME}, confidence=DEFAULT_CONFIDENCE)
+
+
 def config_name(config: dict[str, Any]) -> str:
     if config["algo"] != "soup":
         return f"{config['algo']} b{config['batch_size']}"
-    name = f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
+    if config.get("defaults"):
+        name = f"soup K={config['n_heads']} defaults b{config['batch_size']}"
+    else:
+        name = f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
     return name + (" (before)" if config.get("before") else "")
 
 
+def scheme(config: dict[str, Any]) -> dict[str, Any]:
+    """A SOUP row's training scheme and confidence."""
+    if config.get("defaults"):
+        return soup_defaults()
+    return {**PAPER_SCHEME, "train_heads": config["train_heads"], "confidence": config["confidence"]}
+
+
 def make_configs(quick: bool, batch_sizes: list[int]) -> list[dict[str, Any]]:
-    """The table's rows: DDPG, TD3, then SOUP for K in (1, 5, 10), active/all heads, confidence none/adaptive."""
+    """
+    The table's rows: DDPG, TD3, then SOUP for K in (1, 5, 10), active/all heads with the paper's update, confidence
+    none/adaptive, and SOUP's defaults at K=5.
+    """
     configs: list[dict[str, Any]] = []
     for batch_size in batch_sizes:
         baselines = ["ddpg"] if quick else ["ddpg", "td3"]
         configs += [dict(algo=algo, batch_size=batch_size) for algo in baselines]
+        configs.append(dict(algo="soup", batch_size=batch_size, n_heads=5, defaults=True))
         heads = (10,) if quick else (1, 5, 10)
         for n_heads in heads:
             for train_heads in ("active", "all"):
@@ -105,17 +134,20 @@ def train_flops(config: dict[str, Any]) -> float:
             macs += (3 * actor + 3 * critic) / 2  # policy_delay=2: actor loss every other step (through Q1)
         return 2.0 * batch * macs
     k = config["n_heads"]
+    update = scheme(config)
     a_body = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]])
     a_head = _mlp_macs([SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM])
     h1, h2 = SOUP_ARCH["qf_body"][:2]
     c_obs = OBS_DIM * h1 + h1 * h2 + _mlp_macs(SOUP_ARCH["qf_body"][1:])  # observation part of the body
     c_act = ACT_DIM * h2  # action projection of the joint layer
     c_head = _mlp_macs([SOUP_ARCH["qf_body"][-1], *SOUP_ARCH["qf_head"], 1])
-    n = k if config["train_heads"] == "all" else 1  # heads (pairs) trained by the step
-    target = a_body + n * a_head + c_obs + n * (c_act + c_head)
+    n = 1 if update["train_heads"] == "active" else k  # critic heads (pairs) trained by the step
+    m = k if update["train_heads"] == "all" else 1  # actor heads trained when the actor is
+    target_heads = 2 if update["target_q"] == "min_pair" and k > 1 else 1  # target critic heads per pair
+    target = a_body + n * a_head + c_obs + n * (c_act + target_heads * c_head)
     critic = 3 * (c_obs + c_act + n * c_head)  # one action per sample, n heads on the same features
-    actor = 3 * (a_body + n * a_head) + 2 * (c_obs + n * (c_act + c_head))  # critic: gradient to its input only
-    return 2.0 * batch * (target + critic + actor)
+    actor = 3 * (a_body + m * a_head) + 2 * (c_obs + m * (c_act + c_head))  # critic: gradient to its input only
+    return 2.0 * batch * (target + critic + actor / update["policy_delay"])
 
 
 def predict_flops(config: dict[str, Any]) -> float:
@@ -132,7 +164,7 @@ def predict_flops(config: dict[str, Any]) -> float:
     )
     h1, h2 = SOUP_ARCH["qf_body"][:2]
     critic = OBS_DIM * h1 + h1 * h2 + k * ACT_DIM * h2 + k * k * _mlp_macs([h2, *SOUP_ARCH["qf_head"], 1])
-    confidence = _mlp_macs([OBS_DIM, 256, 128, k]) if config["confidence"] == "adaptive" and k > 1 else 0
+    confidence = _mlp_macs([OBS_DIM, 256, 128, k]) if scheme(config)["confidence"] == "adaptive" and k > 1 else 0
     if k == 1:
         critic = 0  # one candidate: no scoring
     return 2.0 * (actor + critic + confidence)
@@ -160,13 +192,7 @@ def _make_model(config: dict[str, Any], device: str, buffer_size: int, learning_
         algo = DDPG if config["algo"] == "ddpg" else TD3
         return algo("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=list(DDPG_ARCH)), **common)
     return SOUP(
-        "MlpPolicy",
-        ENV_ID,
-        n_heads=config["n_heads"],
-        train_heads=config["train_heads"],
-        confidence=config["confidence"],
-        policy_kwargs=dict(net_arch=SOUP_ARCH),
-        **common,
+        "MlpPolicy", ENV_ID, n_heads=config["n_heads"], policy_kwargs=dict(net_arch=SOUP_ARCH), **scheme(config), **common
     )
 
 

@@ -36,7 +36,17 @@ def test_flop_counts():
     # predict: the E-Critic scores K x K (candidate, critic head) pairs
     assert bench.predict_flops(soup) / bench.predict_flops(ddpg) > 40
     names = [bench.config_name(c) for c in bench.make_configs(quick=False, batch_sizes=[1024, 256])]
-    assert len(names) == len(set(names)) == 2 * (2 + 3 * 2 * 2)
+    assert len(names) == len(set(names)) == 2 * (2 + 1 + 3 * 2 * 2)
+    # the scheme's savings: a delayed actor, all critics with one actor head; a second target head costs a little
+    all_pairs = dict(soup, n_heads=5, batch_size=256)
+    cheaper = dict(all_pairs, defaults=True)
+    paper = bench.PAPER_SCHEME
+    bench.soup_defaults = lambda: dict(paper, train_heads="all", policy_delay=2, confidence="adaptive")
+    assert 0.7 < bench.train_flops(cheaper) / bench.train_flops(all_pairs) < 0.8  # actor every other update
+    bench.soup_defaults = lambda: dict(paper, train_heads="all", target_q="min_pair", confidence="adaptive")
+    assert 1.0 < bench.train_flops(cheaper) / bench.train_flops(all_pairs) < 1.2  # one more head per target
+    bench.soup_defaults = lambda: dict(paper, train_heads="all_critics", confidence="adaptive")
+    assert bench.train_flops(cheaper) / bench.train_flops(all_pairs) < 0.8  # one actor head per update
 
 
 def test_quick_mode_writes_the_table(tmp_path):
