@@ -12,7 +12,7 @@ from sb3_soup.confidence import (
     NoConfidence,
     UCBConfidence,
 )
-from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, SOUPPolicy
+from sb3_soup.policies import CnnPolicy, EnsembleView, MlpPolicy, MultiInputPolicy, SOUPPolicy
 from sb3_soup.presets import PRESETS, paper_settings
 from sb3_soup.soup import SOUP
 
@@ -31,6 +31,7 @@ __all__ = [
     "ConfidenceStep",
     "ConfidenceStrategy",
     "DecayedConfidence",
+    "EnsembleView",
     "FixedConfidence",
     "MlpPolicy",
     "MultiInputPolicy",

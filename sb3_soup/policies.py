@@ -163,6 +163,24 @@ class Selection(NamedTuple):
     chosen: th.Tensor  # (B,) index of the chosen candidate
     q_matrix: th.Tensor | None  # (B, Kc, Ka), None when there is one actor and one critic head
     weights: th.Tensor | None  # W broadcastable to (B, Kc, Ka)
+    candidates: th.Tensor | None = None  # (Ka, B, A) every actor head's action in [-1, 1]
+
+
+class EnsembleView(NamedTuple):
+    """
+    The ensemble's view of a batch of observations (:meth:`SOUPPolicy.ensemble_view`), as NumPy arrays, batch first.
+    Actions are in the environment's bounds, as ``predict`` returns them. For an unbatched observation (as
+    ``predict`` takes it) the leading ``B`` is dropped from every field.
+    """
+
+    actions: np.ndarray  # (B, A) the E-action executed: predict(obs, deterministic=True)'s action
+    candidates: np.ndarray  # (B, Ka, A) the action of every actor head
+    q_matrix: np.ndarray  # (B, Kc, Ka) V[b, i, k] = Q_i(s_b, a_b^k): every critic head's value of every candidate
+    weights: np.ndarray  # (B, Kc, Ka) the confidence weights W of the E-Critic layer (eq. 7)
+    e_q: np.ndarray  # (B, Ka) E-Q value of each candidate, v[k] = sum_i W[i, k] V[i, k]
+    chosen: np.ndarray  # (B,) the actor head whose candidate is executed (argmax of e_q)
+    q_mean: np.ndarray  # (B,) mean over the critic heads of the chosen candidate's Q value
+    q_spread: np.ndarray  # (B,) their std (ddof 1, as the rollout/q_spread log; 0 with one critic head)
 
 
 class SOUPPolicy(BasePolicy):
@@ -374,13 +392,65 @@ class SOUPPolicy(BasePolicy):
         candidates = self.actor(obs)  # (Ka, B, A)
         if self.n_actor_heads == 1 and self.n_critic_heads == 1:
             chosen = th.zeros(candidates.shape[1], dtype=th.long, device=candidates.device)
-            return Selection(candidates[0], chosen, None, None)
+            return Selection(candidates[0], chosen, None, None, candidates)
         q_matrix = self.critic.q_matrix(obs, candidates)  # (B, Kc, Ka)
         strategy = self.confidence
         weights = (strategy.exploration_weights if explore else strategy.weights)(obs, q_matrix)  # broadcastable to V
         check_weights(self.confidence, weights, q_matrix)
         actions, chosen = e_actor(candidates, e_critic(q_matrix, weights))
-        return Selection(actions, chosen, q_matrix, weights)
+        return Selection(actions, chosen, q_matrix, weights, candidates)
+
+    def ensemble_view(self, observation: np.ndarray | dict[str, np.ndarray], explore: bool = False) -> EnsembleView:
+        """
+        What the whole ensemble thinks of a batch of observations: every actor head's candidate, every critic head's
+        value of every candidate, the confidence weights, the chosen head and how much the critic heads disagree on
+        the chosen action (``q_spread``): the ensemble's uncertainty, for safe exploration, monitoring or active
+        learning. It changes nothing: ``predict`` returns what it returned before, and ``actions`` is its deterministic
+        action.
+
+        ``V`` and ``W`` are computed whatever the head counts (with one actor and one critic head, which ``predict``
+        does not score, ``V`` is ``(B, 1, 1)`` and ``W`` ones).
+
+        :param observation: observations as ``predict`` takes them (NumPy, a dict of them for Dict spaces, batched or
+            not, channel-last images transposed); with a ``VecNormalize`` env, normalise them first
+            (``env.normalize_obs``), as for ``predict``
+        :param explore: weight with the strategy's ``exploration_weights`` (what ``learn`` acts on, e.g. UCB's
+            optimistic bonus) instead of its ``weights`` (greedy actions); ``actions`` is then the noise-free action
+            ``learn`` would take
+        :return: NumPy arrays (see :class:`EnsembleView`), without the batch dimension for an unbatched observation
+        """
+        self.set_training_mode(False)
+        obs, vectorized = self.obs_to_tensor(observation)
+        with th.no_grad():
+            selection = self.select(obs, explore=explore)  # what predict (explore=False) and learn (True) act on
+            candidates, chosen = selection.candidates, selection.chosen  # (Ka, B, A), (B,)
+            assert candidates is not None
+            if selection.q_matrix is None or selection.weights is None:  # one candidate, which select() does not score
+                q_matrix = self.critic.q_matrix(obs, candidates)  # (B, 1, 1)
+                weights = th.ones_like(q_matrix)
+            else:
+                q_matrix, weights = selection.q_matrix, selection.weights.expand_as(selection.q_matrix)  # (B, Kc, Ka)
+            e_q = e_critic(q_matrix, weights)  # (B, Ka)
+            chosen_q = q_matrix[th.arange(len(chosen), device=chosen.device), :, chosen]  # (B, Kc)
+            q_spread = chosen_q.std(dim=1) if self.n_critic_heads > 1 else th.zeros_like(chosen_q[:, 0])  # (B,)
+            values = (
+                selection.actions,
+                candidates.transpose(0, 1),
+                q_matrix,
+                weights,
+                e_q,
+                chosen,
+                chosen_q.mean(dim=1),
+                q_spread,
+            )
+        arrays = [value.cpu().numpy() for value in values]
+        action_shape = self.action_space.shape
+        assert action_shape is not None
+        for i in (0, 1):  # the actions in the env's bounds, shaped as the action space
+            arrays[i] = self.unscale_action(arrays[i].reshape((*arrays[i].shape[:-1], *action_shape)))
+        if not vectorized:
+            arrays = [array.squeeze(axis=0) for array in arrays]
+        return EnsembleView(*arrays)
 
     def forward(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(observation, deterministic=deterministic)

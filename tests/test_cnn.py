@@ -102,6 +102,9 @@ def test_cnn_policy_learns_saves_and_loads(tmp_path, share):
     assert loaded.policy.share_features_extractor is share
     assert (loaded.critic.features_extractor is loaded.actor.features_extractor) is share
     np.testing.assert_array_equal(loaded.predict(images, deterministic=True)[0], actions)
+    view = loaded.policy.ensemble_view(images)  # channel-last images, as predict takes them
+    np.testing.assert_array_equal(view.actions, actions)
+    assert view.q_matrix.shape == (4, 2, 2)
     loaded.set_env(TinyImageEnv())
     loaded.learn(10, reset_num_timesteps=False)  # and trains on
     assert loaded.num_timesteps == 50
