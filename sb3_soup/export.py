@@ -73,8 +73,8 @@ class OnnxableSOUPPolicy(nn.Module):
         self.policy = policy
         self.keys = list(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else None
         self.action_shape = tuple(action_space.shape)
-        self.register_buffer("low", th.as_tensor(action_space.low, dtype=th.float32).flatten(), persistent=False)  # (A,)
-        self.register_buffer("high", th.as_tensor(action_space.high, dtype=th.float32).flatten(), persistent=False)
+        for name, bound in (("low", action_space.low), ("high", action_space.high)):  # (A,) each, on the policy's device
+            self.register_buffer(name, th.as_tensor(bound, dtype=th.float32, device=policy.device).flatten(), persistent=False)
         self.register_buffer("constant_weights", None, persistent=False)  # (1, Kc, Ka) for a strategy of constant W
         one_candidate = policy.n_actor_heads == 1 and policy.n_critic_heads == 1
         if not one_candidate and getattr(type(policy.confidence), "weights", None) in _CONSTANT_WEIGHTS:
