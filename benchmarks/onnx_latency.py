@@ -98,6 +98,7 @@ def measure(config: dict[str, Any], repeats: int, calls: int, folder: Path) -> l
     options.intra_op_num_threads = options.inter_op_num_threads = 1
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     graph = OnnxableSOUPPolicy(model.policy).eval()
+    (input_dtype,) = graph.input_dtypes()
     rows = []
     for batch_size in config["batch_sizes"]:
         model.observation_space.seed(0)
@@ -111,7 +112,7 @@ def measure(config: dict[str, Any], repeats: int, calls: int, folder: Path) -> l
                 return graph(th.as_tensor(obs)).numpy()
 
         def onnxruntime(obs: np.ndarray = obs) -> Any:
-            return session.run(None, {"obs": obs})[0]
+            return session.run(None, {"obs": np.asarray(obs, dtype=input_dtype)})[0]  # float64 (MuJoCo) -> float32
 
         ways = {"predict": predict, "torch": torch_graph, "onnxruntime": onnxruntime}
         outputs = {name: way() for name, way in ways.items()}  # warm-up, and the three agree

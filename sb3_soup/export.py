@@ -17,7 +17,7 @@ Recipe (``pip install "sb3-soup[onnx]"``)::
     export_onnx(model, "soup_pendulum.onnx")
 
     session = ort.InferenceSession("soup_pendulum.onnx", providers=["CPUExecutionProvider"])
-    obs = np.zeros((4, *model.observation_space.shape), dtype=model.observation_space.dtype)  # a batch of 4
+    obs = np.zeros((4, *model.observation_space.shape), dtype=np.float32)  # a batch of 4 observations
     (actions,) = session.run(None, {"obs": obs})  # (4, *action_shape), as model.predict(obs, deterministic=True)[0]
 
 What stays outside the graph, as in SB3's guide:
@@ -25,6 +25,7 @@ What stays outside the graph, as in SB3's guide:
 - observations are batched, of the policy's observation space: for images that SB3 transposed (channel-last envs are
   wrapped in ``VecTransposeImage``), pass them channel-first (``np.transpose(obs, (0, 3, 1, 2))``); with
   ``VecNormalize``, normalise them first (``vec_normalize.normalize_obs(obs)``);
+- float observations are float32 (as the policy computes, even for a float64 space such as MuJoCo's), images uint8;
 - Dict observations are one input per key, named by the key;
 - the exploration noise (the exported policy is the deterministic one);
 - the confidence weights that depend on neither the observation nor ``V`` (``none``, ``fixed``, ``decayed`` and
@@ -90,12 +91,24 @@ class OnnxableSOUPPolicy(nn.Module):
         """The graph's input names: ``["obs"]``, or the Dict observation's keys."""
         return ["obs"] if self.keys is None else list(self.keys)
 
+    def input_dtypes(self) -> list[np.dtype]:
+        """
+        The graph's input types: float32 for float observations (the policy computes in float32, whatever the space's
+        float type, e.g. MuJoCo's float64), the space's type otherwise (uint8 images, scaled in the graph).
+        """
+        observation_space = self.policy.observation_space
+        boxes = [observation_space] if self.keys is None else [observation_space[key] for key in self.keys]  # type: ignore[index]
+        return [np.dtype(np.float32) if np.issubdtype(box.dtype, np.floating) else np.dtype(box.dtype) for box in boxes]
+
     def example_inputs(self, batch_size: int = 2) -> tuple[th.Tensor, ...]:
         """:return: a batch of observations sampled from the observation space, one tensor per input"""
         observation_space = self.policy.observation_space
         boxes = [observation_space] if self.keys is None else [observation_space[key] for key in self.keys]  # type: ignore[index]
         device = self.policy.device
-        return tuple(th.as_tensor(np.stack([box.sample() for _ in range(batch_size)]), device=device) for box in boxes)
+        return tuple(
+            th.as_tensor(np.stack([box.sample() for _ in range(batch_size)]).astype(dtype), device=device)
+            for box, dtype in zip(boxes, self.input_dtypes())
+        )
 
     def _observation(self, inputs: tuple[th.Tensor, ...]) -> Any:
         return inputs[0] if self.keys is None else dict(zip(self.keys, inputs))

@@ -74,12 +74,16 @@ def test_onnx_images_with_asymmetric_action_bounds(tmp_path):
 
 
 def test_onnx_dict_observations_are_one_input_per_key(tmp_path):
-    observation_space = spaces.Dict({"position": spaces.Box(-1, 1, (2,)), "velocity": spaces.Box(-5, 5, (3,))})
+    """Dict observations, one of them float64 (as MuJoCo's): its input is float32, as the policy computes."""
+    velocity = spaces.Box(-5, 5, (3,), np.float64)
+    observation_space = spaces.Dict({"position": spaces.Box(-1, 1, (2,)), "velocity": velocity})
     model = SOUP("MultiInputPolicy", ToyEnv(observation_space, spaces.Box(-1, 3, (2,))), **SMALL).learn(40)
     graph = session(export_onnx(model, tmp_path / "dict.onnx"))
-    assert [node.name for node in graph.get_inputs()] == ["position", "velocity"]
+    inputs = [(node.name, node.type) for node in graph.get_inputs()]
+    assert inputs == [("position", "tensor(float)"), ("velocity", "tensor(float)")]
     obs = {key: sample(space, 6) for key, space in observation_space.spaces.items()}
-    (actions,) = graph.run(None, obs)
+    assert obs["velocity"].dtype == np.float64
+    (actions,) = graph.run(None, {key: value.astype(np.float32) for key, value in obs.items()})
     np.testing.assert_allclose(actions, model.predict(obs, deterministic=True)[0], rtol=0, atol=1e-5)
 
 
