@@ -12,7 +12,8 @@ from sb3_soup.confidence import (
     NoConfidence,
     UCBConfidence,
 )
-from sb3_soup.policies import MlpPolicy, MultiInputPolicy, SOUPPolicy
+from sb3_soup.export import export_onnx
+from sb3_soup.policies import CnnPolicy, EnsembleView, MlpPolicy, MultiInputPolicy, SOUPPolicy
 from sb3_soup.presets import PRESETS, paper_settings
 from sb3_soup.soup import SOUP
 
@@ -27,9 +28,11 @@ __all__ = [
     "AdaptiveConfidence",
     "BootstrappedDictReplayBuffer",
     "BootstrappedReplayBuffer",
+    "CnnPolicy",
     "ConfidenceStep",
     "ConfidenceStrategy",
     "DecayedConfidence",
+    "EnsembleView",
     "FixedConfidence",
     "MlpPolicy",
     "MultiInputPolicy",
@@ -37,5 +40,6 @@ __all__ = [
     "SOUPPolicy",
     "UCBConfidence",
     "__version__",
+    "export_onnx",
     "paper_settings",
 ]

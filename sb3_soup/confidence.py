@@ -191,6 +191,10 @@ class ConfidenceNetwork(BaseModel):
     """
     The confidence module: shaped like a one-head actor (body [256], head [128]) with Kc sigmoid outputs
     clamped to [eps, 1].
+
+    With ``share_features_extractor``, ``features_extractor`` is the actor's (the policy's
+    ``share_features_extractor=True``): read without gradient, it is not the confidence network's to train
+    (see :meth:`trained_parameters`).
     """
 
     def __init__(
@@ -204,6 +208,7 @@ class ConfidenceNetwork(BaseModel):
         activation_fn: type[nn.Module],
         normalize_images: bool = True,
         eps: float = 1e-3,
+        share_features_extractor: bool = False,
     ):
         super().__init__(
             observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
@@ -211,9 +216,20 @@ class ConfidenceNetwork(BaseModel):
         self.net = mlp([features_dim, *net_arch], activation_fn)
         self.out = nn.Linear(net_arch[-1] if net_arch else features_dim, n_critic_heads)
         self.eps = eps
+        self.share_features_extractor = share_features_extractor
+
+    def trained_parameters(self) -> list[nn.Parameter]:
+        """The parameters REINFORCE trains: all of them, less a features extractor shared with the actor."""
+        if not self.share_features_extractor:
+            return list(self.parameters())
+        return [*self.net.parameters(), *self.out.parameters()]
 
     def forward(self, obs: PyTorchObs) -> th.Tensor:  # type: ignore[override]
-        features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+        if self.share_features_extractor:
+            with th.no_grad():
+                features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+        else:
+            features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
         return th.sigmoid(self.out(self.net(features))).clamp(self.eps, 1.0)  # (B, Kc)
 
 
@@ -266,7 +282,10 @@ class AdaptiveConfidence(ConfidenceStrategy):
 
     def setup(self, policy: "SOUPPolicy") -> None:
         super().setup(policy)
-        extractor = policy.make_features_extractor()
+        # its own features extractor, or the actor's when the policy shares it (share_features_extractor=True)
+        shared = bool(getattr(policy, "share_features_extractor", False))
+        extractor = policy.actor.features_extractor if shared else policy.make_features_extractor()
+        assert extractor is not None
         self.network = ConfidenceNetwork(
             policy.observation_space,
             policy.action_space,
@@ -277,8 +296,9 @@ class AdaptiveConfidence(ConfidenceStrategy):
             policy.activation_fn,
             normalize_images=policy.normalize_images,
             eps=self.eps,
+            share_features_extractor=shared,
         )
-        self.optimizer = th.optim.Adam(self.network.parameters(), lr=self.lr)
+        self.optimizer = th.optim.Adam(self.network.trained_parameters(), lr=self.lr)
 
     def confidence(self, obs: PyTorchObs) -> th.Tensor:
         """Confidence vector ``c(s)`` of shape ``(B, Kc)`` in [eps, 1]."""

@@ -130,6 +130,10 @@ class EnsembleModel(BaseModel):
             heads: list[th.Tensor] = list(self.heads.parameters())
             head_ids = {id(p) for p in heads}
             every: list[th.Tensor] = list(self.parameters())
+            if getattr(self, "share_features_extractor", False):
+                # another network's features extractor, trained and soft-updated with that network: not this one's
+                shared = {id(p) for p in self.features_extractor.parameters()}  # type: ignore[union-attr]
+                every = [p for p in every if id(p) not in shared]
             lists = self._parameter_lists = (every, [p for p in every if id(p) not in head_ids], heads)
         return lists
 
@@ -145,7 +149,10 @@ class EnsembleModel(BaseModel):
         super().__setattr__(name, value)
 
     def all_parameters(self) -> list[th.Tensor]:
-        """Every parameter (as ``list(self.parameters())``, cached)."""
+        """
+        Every parameter this network trains (as ``list(self.parameters())``, cached), without a features extractor shared
+        with another network.
+        """
         return self._split_parameters()[0]
 
     def head_parameters(self) -> list[th.Tensor]:
@@ -153,7 +160,7 @@ class EnsembleModel(BaseModel):
         return self._split_parameters()[2]
 
     def body_parameters(self) -> list[th.Tensor]:
-        """Parameters shared by all heads (features extractor and body)."""
+        """Parameters shared by all heads (features extractor, unless shared with another network, and body)."""
         return self._split_parameters()[1]
 
 
@@ -240,6 +247,8 @@ class EnsembleCritic(EnsembleModel):
     :param features_dim: its output size
     :param activation_fn: activation function
     :param normalize_images: whether to divide images by 255
+    :param share_features_extractor: ``features_extractor`` is the actor's (as SB3's ``ContinuousCritic``): the critic
+        reads its features without gradient, and neither trains it nor soft-updates it (the actor does)
     """
 
     def __init__(
@@ -253,10 +262,12 @@ class EnsembleCritic(EnsembleModel):
         features_dim: int,
         activation_fn: type[nn.Module] = nn.LeakyReLU,
         normalize_images: bool = True,
+        share_features_extractor: bool = False,
     ):
         super().__init__(
             observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
         )
+        self.share_features_extractor = share_features_extractor
         if len(body_arch) < 2:
             raise ValueError(f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {body_arch}")
         self.n_heads = n_heads
@@ -281,6 +292,7 @@ class EnsembleCritic(EnsembleModel):
                 features_dim=self.features_dim,
                 activation_fn=self.activation_fn,
                 features_extractor=self.features_extractor,
+                share_features_extractor=self.share_features_extractor,
             )
         )
         return data
@@ -290,7 +302,11 @@ class EnsembleCritic(EnsembleModel):
         :param actions: ``(B, A)`` or ``(N, B, A)`` (N candidate actions per observation)
         :return: body output ``(B, F)`` or ``(N, B, F)``
         """
-        features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+        if self.share_features_extractor:
+            with th.no_grad():  # the actor's extractor, trained by the actor's loss only (as in SB3)
+                features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
+        else:
+            features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
         h1 = self.activation(self.obs_layer(features))  # (B, H1)
         w_obs, w_act = self.joint_layer.weight.split([h1.shape[-1], actions.shape[-1]], dim=1)
         z_obs = F.linear(h1, w_obs, self.joint_layer.bias)  # (B, H2)

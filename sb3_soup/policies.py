@@ -9,7 +9,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import is_image_space
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor, NatureCNN
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
@@ -99,7 +99,8 @@ def check_policy(
 ) -> None:
     """
     What SB3's checks let through but SOUP refuses: a policy that is not a :class:`SOUPPolicy`, unknown
-    ``policy_kwargs``, ``MultiInputPolicy`` on non-Dict observations; and a warning when image pixels go into an MLP.
+    ``policy_kwargs``, ``MultiInputPolicy`` on non-Dict observations, ``CnnPolicy`` on observations that are not images;
+    and a warning when image pixels go into an MLP.
 
     :param policy_class: the policy class
     :param policy_kwargs: its keyword arguments (SOUP's own included)
@@ -117,12 +118,23 @@ def check_policy(
             raise ValueError(f"policy_kwargs has unknown keys {unknown}; {policy_class.__name__} accepts {names}")
     if issubclass(policy_class, MultiInputPolicy) and not isinstance(observation_space, spaces.Dict):
         raise ValueError(f"policy must be 'MlpPolicy' for {observation_space} observations ('MultiInputPolicy' is for Dict)")
-    extractor = policy_kwargs.get("features_extractor_class", FlattenExtractor)
+    # the extractor asked for, or the policy's default (FlattenExtractor for MlpPolicy, NatureCNN for CnnPolicy)
+    default_extractor = accepted["features_extractor_class"].default if "features_extractor_class" in accepted else None
+    extractor = policy_kwargs.get("features_extractor_class", default_extractor)
+    normalized_image = (policy_kwargs.get("features_extractor_kwargs") or {}).get("normalized_image", False)
+    if extractor is NatureCNN and not is_image_space(
+        observation_space, check_channels=False, normalized_image=normalized_image
+    ):
+        raise ValueError(
+            "NatureCNN (CnnPolicy's features extractor) takes image observations: a Box of shape (C, H, W) or (H, W, C), "
+            "uint8 in [0, 255] (or float with features_extractor_kwargs=dict(normalized_image=True)), "
+            f"got {observation_space}; use 'MlpPolicy' (or 'MultiInputPolicy' for Dict observations, whose image keys get "
+            "a NatureCNN)"
+        )
     if is_image_space(observation_space, check_channels=False) and extractor is FlattenExtractor:
         warnings.warn(
             f"the observations are images {observation_space.shape}: MlpPolicy flattens their pixels (scaled to "
-            "[0, 1]) into the MLP, as SB3's DDPG does. For a CNN pass "
-            "policy_kwargs=dict(features_extractor_class=stable_baselines3.common.torch_layers.NatureCNN)",
+            "[0, 1]) into the MLP, as SB3's DDPG does. For a CNN (NatureCNN) use policy='CnnPolicy'",
             UserWarning,
             stacklevel=4,
         )
@@ -151,6 +163,24 @@ class Selection(NamedTuple):
     chosen: th.Tensor  # (B,) index of the chosen candidate
     q_matrix: th.Tensor | None  # (B, Kc, Ka), None when there is one actor and one critic head
     weights: th.Tensor | None  # W broadcastable to (B, Kc, Ka)
+    candidates: th.Tensor | None = None  # (Ka, B, A) every actor head's action in [-1, 1]
+
+
+class EnsembleView(NamedTuple):
+    """
+    The ensemble's view of a batch of observations (:meth:`SOUPPolicy.ensemble_view`), as NumPy arrays, batch first.
+    Actions are in the environment's bounds, as ``predict`` returns them. For an unbatched observation (as
+    ``predict`` takes it) the leading ``B`` is dropped from every field.
+    """
+
+    actions: np.ndarray  # (B, A) the E-action executed: predict(obs, deterministic=True)'s action
+    candidates: np.ndarray  # (B, Ka, A) the action of every actor head
+    q_matrix: np.ndarray  # (B, Kc, Ka) V[b, i, k] = Q_i(s_b, a_b^k): every critic head's value of every candidate
+    weights: np.ndarray  # (B, Kc, Ka) the confidence weights W of the E-Critic layer (eq. 7)
+    e_q: np.ndarray  # (B, Ka) E-Q value of each candidate, v[k] = sum_i W[i, k] V[i, k]
+    chosen: np.ndarray  # (B,) the actor head whose candidate is executed (argmax of e_q)
+    q_mean: np.ndarray  # (B,) mean over the critic heads of the chosen candidate's Q value
+    q_spread: np.ndarray  # (B,) their std (ddof 1, as the rollout/q_spread log; 0 with one critic head)
 
 
 class SOUPPolicy(BasePolicy):
@@ -175,6 +205,10 @@ class SOUPPolicy(BasePolicy):
     :param optimizer_class: The optimizer to use (``EnsembleAdam`` keeps per-head state, so training one head
         leaves the others untouched)
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+    :param share_features_extractor: one features extractor for the actor, the critic and the adaptive confidence
+        network, as SB3's ``share_features_extractor``: the actor's loss trains it (the critic and the confidence
+        network read its features without gradient) and the actor's soft update moves its target. False (the default,
+        as SB3's TD3): each network has its own, trained by its own loss
     """
 
     actor: EnsembleActor
@@ -199,6 +233,7 @@ class SOUPPolicy(BasePolicy):
         normalize_images: bool = True,
         optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
+        share_features_extractor: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -223,6 +258,7 @@ class SOUPPolicy(BasePolicy):
         self.n_critic_heads = n_critic_heads
         self.confidence_spec = confidence
         self.confidence_kwargs = {} if confidence_kwargs is None else dict(confidence_kwargs)
+        self.share_features_extractor = share_features_extractor
         # std of the Gaussian noise added by predict(deterministic=False), set by the algorithm's schedule
         self.current_noise_std = 0.0
         self._build(lr_schedule)
@@ -231,8 +267,13 @@ class SOUPPolicy(BasePolicy):
         self.actor = self.make_actor()
         self.actor_target = self.make_actor()
         self.actor_target.load_state_dict(self.actor.state_dict())
-        self.critic = self.make_critic()
-        self.critic_target = self.make_critic()
+        if self.share_features_extractor:
+            # as SB3's TD3: the critic target reads the actor target's extractor, which the actor's soft update moves
+            self.critic = self.make_critic(self.actor.features_extractor)
+            self.critic_target = self.make_critic(self.actor_target.features_extractor)
+        else:
+            self.critic = self.make_critic()
+            self.critic_target = self.make_critic()
         self.critic_target.load_state_dict(self.critic.state_dict())
         for model, target in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
             model.optimizer = self.optimizer_class(  # type: ignore[call-arg]
@@ -246,6 +287,7 @@ class SOUPPolicy(BasePolicy):
         self.confidence.setup(self)
 
     def make_actor(self) -> EnsembleActor:
+        """:return: a new actor with its own features extractor"""
         extractor = self.make_features_extractor()
         return EnsembleActor(
             self.observation_space,
@@ -259,8 +301,12 @@ class SOUPPolicy(BasePolicy):
             self.normalize_images,
         ).to(self.device)
 
-    def make_critic(self) -> EnsembleCritic:
-        extractor = self.make_features_extractor()
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:
+        """
+        :param features_extractor: the actor's features extractor, to share (None: a new one of its own)
+        :return: a new critic
+        """
+        extractor = self.make_features_extractor() if features_extractor is None else features_extractor
         return EnsembleCritic(
             self.observation_space,
             self.action_space,  # type: ignore[arg-type]
@@ -271,6 +317,7 @@ class SOUPPolicy(BasePolicy):
             extractor.features_dim,
             self.activation_fn,
             self.normalize_images,
+            share_features_extractor=features_extractor is not None,
         ).to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
@@ -288,6 +335,7 @@ class SOUPPolicy(BasePolicy):
                 optimizer_kwargs=self.optimizer_kwargs,
                 features_extractor_class=self.features_extractor_class,
                 features_extractor_kwargs=self.features_extractor_kwargs,
+                share_features_extractor=self.share_features_extractor,
             )
         )
         return data
@@ -343,13 +391,66 @@ class SOUPPolicy(BasePolicy):
         """
         candidates = self.actor(obs)  # (Ka, B, A)
         if self.n_actor_heads == 1 and self.n_critic_heads == 1:
-            return Selection(candidates[0], th.zeros(candidates.shape[1], dtype=th.long, device=candidates.device), None, None)
+            chosen = th.zeros(candidates.shape[1], dtype=th.long, device=candidates.device)
+            return Selection(candidates[0], chosen, None, None, candidates)
         q_matrix = self.critic.q_matrix(obs, candidates)  # (B, Kc, Ka)
         strategy = self.confidence
         weights = (strategy.exploration_weights if explore else strategy.weights)(obs, q_matrix)  # broadcastable to V
         check_weights(self.confidence, weights, q_matrix)
         actions, chosen = e_actor(candidates, e_critic(q_matrix, weights))
-        return Selection(actions, chosen, q_matrix, weights)
+        return Selection(actions, chosen, q_matrix, weights, candidates)
+
+    def ensemble_view(self, observation: np.ndarray | dict[str, np.ndarray], explore: bool = False) -> EnsembleView:
+        """
+        What the whole ensemble thinks of a batch of observations: every actor head's candidate, every critic head's
+        value of every candidate, the confidence weights, the chosen head and how much the critic heads disagree on
+        the chosen action (``q_spread``): the ensemble's uncertainty, for safe exploration, monitoring or active
+        learning. It changes nothing: ``predict`` returns what it returned before, and ``actions`` is its deterministic
+        action.
+
+        ``V`` and ``W`` are computed whatever the head counts (with one actor and one critic head, which ``predict``
+        does not score, ``V`` is ``(B, 1, 1)`` and ``W`` ones).
+
+        :param observation: observations as ``predict`` takes them (NumPy, a dict of them for Dict spaces, batched or
+            not, channel-last images transposed); with a ``VecNormalize`` env, normalise them first
+            (``env.normalize_obs``), as for ``predict``
+        :param explore: weight with the strategy's ``exploration_weights`` (what ``learn`` acts on, e.g. UCB's
+            optimistic bonus) instead of its ``weights`` (greedy actions); ``actions`` is then the noise-free action
+            ``learn`` would take
+        :return: NumPy arrays (see :class:`EnsembleView`), without the batch dimension for an unbatched observation
+        """
+        self.set_training_mode(False)
+        obs, vectorized = self.obs_to_tensor(observation)
+        with th.no_grad():
+            selection = self.select(obs, explore=explore)  # what predict (explore=False) and learn (True) act on
+            candidates, chosen = selection.candidates, selection.chosen  # (Ka, B, A), (B,)
+            assert candidates is not None
+            if selection.q_matrix is None or selection.weights is None:  # one candidate, which select() does not score
+                q_matrix = self.critic.q_matrix(obs, candidates)  # (B, 1, 1)
+                weights = th.ones_like(q_matrix)
+            else:
+                q_matrix, weights = selection.q_matrix, selection.weights.expand_as(selection.q_matrix)  # (B, Kc, Ka)
+            e_q = e_critic(q_matrix, weights)  # (B, Ka)
+            chosen_q = q_matrix[th.arange(len(chosen), device=chosen.device), :, chosen]  # (B, Kc)
+            q_spread = chosen_q.std(dim=1) if self.n_critic_heads > 1 else th.zeros_like(chosen_q[:, 0])  # (B,)
+            values = (
+                selection.actions,
+                candidates.transpose(0, 1),
+                q_matrix,
+                weights,
+                e_q,
+                chosen,
+                chosen_q.mean(dim=1),
+                q_spread,
+            )
+        arrays = [value.cpu().numpy() for value in values]
+        action_shape = self.action_space.shape
+        assert action_shape is not None
+        for i in (0, 1):  # the actions in the env's bounds, shaped as the action space
+            arrays[i] = self.unscale_action(arrays[i].reshape((*arrays[i].shape[:-1], *action_shape)))
+        if not vectorized:
+            arrays = [array.squeeze(axis=0) for array in arrays]
+        return EnsembleView(*arrays)
 
     def forward(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(observation, deterministic=deterministic)
@@ -378,10 +479,54 @@ class SOUPPolicy(BasePolicy):
 MlpPolicy = SOUPPolicy
 
 
+class CnnPolicy(SOUPPolicy):
+    """
+    Policy class for SOUP with image observations (see :class:`SOUPPolicy` for the parameters), as SB3's TD3
+    ``CnnPolicy``: SB3's ``NatureCNN`` by default, images scaled to [0, 1] (``normalize_images``), channel-last images
+    transposed by SB3 (``VecTransposeImage``), one extractor per network unless ``share_features_extractor=True``.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.LeakyReLU,
+        n_actor_heads: int = 5,
+        n_critic_heads: int = 5,
+        confidence: "str | ConfidenceStrategy" = "adaptive",
+        confidence_kwargs: dict[str, Any] | None = None,
+        features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        share_features_extractor: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch,
+            activation_fn,
+            n_actor_heads,
+            n_critic_heads,
+            confidence,
+            confidence_kwargs,
+            features_extractor_class,
+            features_extractor_kwargs,
+            normalize_images,
+            optimizer_class,
+            optimizer_kwargs,
+            share_features_extractor,
+        )
+
+
 class MultiInputPolicy(SOUPPolicy):
     """
     Policy class for SOUP with Dict observations (see :class:`SOUPPolicy` for the parameters);
-    uses SB3's ``CombinedExtractor`` by default.
+    uses SB3's ``CombinedExtractor`` by default (a ``NatureCNN`` for each image key, flattened other keys).
     """
 
     def __init__(
@@ -400,6 +545,7 @@ class MultiInputPolicy(SOUPPolicy):
         normalize_images: bool = True,
         optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
+        share_features_extractor: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -416,4 +562,5 @@ class MultiInputPolicy(SOUPPolicy):
             normalize_images,
             optimizer_class,
             optimizer_kwargs,
+            share_features_extractor,
         )

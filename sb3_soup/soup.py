@@ -35,7 +35,7 @@ from sb3_soup.losses import actor_loss, critic_loss, td_target
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.persistence import capture_rng_state, restore_rng_state
-from sb3_soup.policies import MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
+from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
 from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data
 from sb3_soup.validation import check_arguments, check_finite_env_output
@@ -73,7 +73,7 @@ class SOUP(OffPolicyAlgorithm):
     proposal is executed (eq. 7). Each episode trains one randomly drawn (actor head, critic head) pair on the
     transitions its bootstrap mask lets it see (Algorithm 1), or every pair at once (``train_heads="all"``).
 
-    :param policy: The policy model to use (MlpPolicy, MultiInputPolicy)
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
     :param learning_rate: actor learning rate for Adam (the paper: 1e-4); it can be a function of the current
         progress remaining (from 1 to 0)
@@ -140,6 +140,7 @@ class SOUP(OffPolicyAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
     }
     policy: SOUPPolicy
@@ -327,12 +328,8 @@ class SOUP(OffPolicyAlgorithm):
 
     def _get_policy_from_name(self, policy_name: str) -> type[BasePolicy]:
         if policy_name not in self.policy_aliases:
-            hint = ""
-            if policy_name == "CnnPolicy":
-                hint = " (for images: MlpPolicy with policy_kwargs=dict(features_extractor_class=NatureCNN))"
             raise ValueError(
-                f"policy must be one of {sorted(self.policy_aliases)} or a sb3_soup.SOUPPolicy subclass, "
-                f"got {policy_name!r}{hint}"
+                f"policy must be one of {sorted(self.policy_aliases)} or a sb3_soup.SOUPPolicy subclass, got {policy_name!r}"
             )
         return self.policy_aliases[policy_name]
 

@@ -57,7 +57,9 @@ def test_unbounded_actions_are_refused_by_sb3():
 
 
 def test_policies_that_do_not_fit_are_refused():
-    with pytest.raises(ValueError, match=re.escape("policy must be one of ['MlpPolicy', 'MultiInputPolicy']") + ".*NatureCNN"):
+    with pytest.raises(ValueError, match=re.escape("policy must be one of ['CnnPolicy', 'MlpPolicy', 'MultiInputPolicy']")):
+        SOUP("RecurrentPolicy", "Pendulum-v1")
+    with pytest.raises(ValueError, match=r"NatureCNN \(CnnPolicy's features extractor\) takes image observations.*got Box"):
         SOUP("CnnPolicy", "Pendulum-v1")
     with pytest.raises(ValueError, match=r"policy must be 'MlpPolicy' for Box.*'MultiInputPolicy' is for Dict"):
         SOUP("MultiInputPolicy", "Pendulum-v1")
@@ -72,7 +74,7 @@ def test_policies_that_do_not_fit_are_refused():
 def test_image_observations_with_mlp_policy_are_flattened_with_a_warning():
     """As SB3's DDPG: MlpPolicy flattens the pixels (scaled to [0, 1]); SOUP says so and how to get a CNN."""
     images = spaces.Box(0, 255, (8, 8, 1), np.uint8)
-    with pytest.warns(UserWarning, match=r"observations are images \(1, 8, 8\): MlpPolicy flattens their pixels.*NatureCNN"):
+    with pytest.warns(UserWarning, match=r"observations are images \(1, 8, 8\): MlpPolicy flattens.*use policy='CnnPolicy'"):
         model = SOUP("MlpPolicy", ToyEnv(images, ACTIONS), n_heads=2, **SMALL)
     model.learn(30)  # learns (on flattened pixels)
     assert model.actor.features_extractor.__class__.__name__ == "FlattenExtractor" and model.num_timesteps == 30
