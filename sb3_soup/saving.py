@@ -7,6 +7,7 @@ SOUP's model zips: what they carry besides SB3's content, and the checks made be
   Bump :data:`SAVE_FORMAT_VERSION` whenever a change makes older files load wrongly (other parameter names or
   shapes, a renamed attribute), and raise :data:`MIN_READABLE_FORMAT` when older files can no longer be read.
   Format 0 is a file written by sb3-soup 0.1.0a0 before the format was stored: same content, no random-generator state.
+  Format 1 (sb3-soup 0.1.0a0) named two attributes differently; :func:`upgrade` renames them.
 - **Random generators.** ``SOUP.save`` stores the random generators' states (see
   :func:`sb3_soup.persistence.capture_rng_state`) as ``_rng_state``; ``SOUP.load`` restores them, so that ``load``
   then ``learn(..., reset_num_timesteps=False)`` continues the random streams where ``save`` left them.
@@ -21,8 +22,11 @@ from typing import Any
 
 from stable_baselines3.common.save_util import open_path
 
-SAVE_FORMAT_VERSION = 1
+SAVE_FORMAT_VERSION = 2
 """Format of the model zips this version writes."""
+
+# Attributes renamed since an older format: format -> {old name: new name}
+_RENAMED = {2: {"_active_heads": "_active_pairs", "exploration_std": "current_noise_std"}}
 
 MIN_READABLE_FORMAT = 0
 """Oldest format this version reads (0: sb3-soup 0.1.0a0 files written before the format was stored)."""
@@ -123,3 +127,19 @@ def check_saved_format(data: dict[str, Any], path: Any) -> int:
             f"sb3-soup {saved_version} (pip install sb3-soup=={saved_version}) and retrain, or keep using that version"
         )
     return saved_format
+
+
+def upgrade(model: Any, saved_format: int) -> None:
+    """
+    Bring a model loaded from an older save format to this version's attribute names (e.g. the active head pairs of
+    a checkpoint, so that resuming it stays exact).
+
+    :param model: the loaded model
+    :param saved_format: its file's format
+    """
+    for new_format, renamed in sorted(_RENAMED.items()):
+        if saved_format >= new_format:
+            continue
+        for old, new in renamed.items():
+            if old in vars(model):
+                setattr(model, new, vars(model).pop(old))

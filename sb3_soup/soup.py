@@ -37,7 +37,7 @@ from sb3_soup.optim import EnsembleAdam
 from sb3_soup.persistence import capture_rng_state, restore_rng_state
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data
+from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data, upgrade
 from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
@@ -301,7 +301,7 @@ class SOUP(OffPolicyAlgorithm):
         self._active_pairs: np.ndarray | None = None
         # The selection made at the step being taken, until its rewards come back (for the confidence strategy)
         self._last_selection: tuple[PyTorchObs, Selection] | None = None
-        self._stats = EnsembleStats(self.n_actor_heads, self.n_critic_heads)
+        self._stats: EnsembleStats  # built with the model (SOUP.load sets the head counts first)
 
         if _init_setup_model:
             self._setup_model()
@@ -339,6 +339,7 @@ class SOUP(OffPolicyAlgorithm):
         self.replay_buffer_kwargs.update(n_masks=max(self.n_actor_heads, self.n_critic_heads), mask_prob=self.mask_prob)
         super()._setup_model()
         self._create_aliases()
+        self._stats = EnsembleStats(self.n_actor_heads, self.n_critic_heads)
         self.critic_lr_schedule = _as_schedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
         self._update_noise_std()
@@ -665,6 +666,7 @@ class SOUP(OffPolicyAlgorithm):
                 UserWarning,
                 stacklevel=2,
             )
+        upgrade(model, saved_format)
         # From now on it is this version's model (and saved in this version's format)
         model._sb3_soup_format = SAVE_FORMAT_VERSION
         model._sb3_soup_version = __version__
@@ -728,8 +730,9 @@ class SOUP(OffPolicyAlgorithm):
         self.replay_buffer = buffer
 
     def _excluded_save_params(self) -> list[str]:
-        # Exclude aliases
-        return [*super()._excluded_save_params(), "actor", "actor_target", "critic", "critic_target"]
+        # Exclude aliases, and what only lives between two steps or two log dumps
+        aliases = ["actor", "actor_target", "critic", "critic_target"]
+        return [*super()._excluded_save_params(), *aliases, "_last_selection", "_stats"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]

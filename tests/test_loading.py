@@ -106,7 +106,9 @@ def test_newer_and_older_save_formats_are_refused(saved, tmp_path, monkeypatch):
         data.update(_sb3_soup_format=SAVE_FORMAT_VERSION + 1, _sb3_soup_version="9.0.0")
 
     future = _rewrite(saved / "model.zip", tmp_path / "future.zip", newer)
-    with pytest.raises(ValueError, match=r"saved by sb3-soup 9\.0\.0 in save format 2; this sb3-soup .* upgrade sb3-soup"):
+    with pytest.raises(
+        ValueError, match=rf"saved by sb3-soup 9\.0\.0 in save format {SAVE_FORMAT_VERSION + 1}; this .* upgrade"
+    ):
         SOUP.load(future)
 
     def before_formats(data):
@@ -122,6 +124,18 @@ def test_newer_and_older_save_formats_are_refused(saved, tmp_path, monkeypatch):
     monkeypatch.setattr(sb3_soup.saving, "MIN_READABLE_FORMAT", 1)
     with pytest.raises(ValueError, match=r"saved by sb3-soup 0\.1\.0a0 in save format 0, which this sb3-soup .* no longer"):
         SOUP.load(old)
+
+
+def test_format_1_files_load_under_this_versions_attribute_names(saved, tmp_path):
+    def format_1(data):
+        data.update(_sb3_soup_format=1, _sb3_soup_version="0.1.0a0")
+        data["_active_heads"] = data.pop("_active_pairs")
+        data["exploration_std"] = data.pop("current_noise_std")
+
+    loaded = SOUP.load(_rewrite(saved / "model.zip", tmp_path / "format_1.zip", format_1))
+    assert "_active_heads" not in vars(loaded)  # a checkpoint resumes with its episodes' head pairs
+    assert np.array_equal(loaded._active_pairs, SOUP.load(saved / "model.zip")._active_pairs)
+    assert "exploration_std" not in vars(loaded) and loaded.current_noise_std > 0
 
 
 # ---------------------------------------------------------------- another K, another preset: loaded as saved
