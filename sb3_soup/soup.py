@@ -301,7 +301,8 @@ class SOUP(OffPolicyAlgorithm):
         self._active_pairs: np.ndarray | None = None
         # The selection made at the step being taken, until its rewards come back (for the confidence strategy)
         self._last_selection: tuple[PyTorchObs, Selection] | None = None
-        self._stats: EnsembleStats  # built with the model (SOUP.load sets the head counts first)
+        # Saved with the model, so that a resumed run logs what the uninterrupted one would have
+        self._stats = EnsembleStats(self.n_actor_heads, self.n_critic_heads)
 
         if _init_setup_model:
             self._setup_model()
@@ -339,7 +340,6 @@ class SOUP(OffPolicyAlgorithm):
         self.replay_buffer_kwargs.update(n_masks=max(self.n_actor_heads, self.n_critic_heads), mask_prob=self.mask_prob)
         super()._setup_model()
         self._create_aliases()
-        self._stats = EnsembleStats(self.n_actor_heads, self.n_critic_heads)
         self.critic_lr_schedule = _as_schedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
         self._update_noise_std()
@@ -730,9 +730,9 @@ class SOUP(OffPolicyAlgorithm):
         self.replay_buffer = buffer
 
     def _excluded_save_params(self) -> list[str]:
-        # Exclude aliases, and what only lives between two steps or two log dumps
+        # Exclude aliases, and the selection being taken (None between two steps, where models are saved)
         aliases = ["actor", "actor_target", "critic", "critic_target"]
-        return [*super()._excluded_save_params(), *aliases, "_last_selection", "_stats"]
+        return [*super()._excluded_save_params(), *aliases, "_last_selection"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
