@@ -308,7 +308,8 @@ def wheel_with_hook(tmp_path: Path) -> Path:
     with zipfile.ZipFile(wheel) as archive:
         names = set(archive.namelist())
         record = next(archive.read(name).decode() for name in names if name.endswith(".dist-info/RECORD"))
-    for name in ("sb3_soup_zoo.pth", "_sb3_soup_zoo_hook.py", "sb3_soup/hyperparams/soup.yml", "sb3_soup/zoo.py"):
+    shipped = ("sb3_soup/hyperparams/soup.yml", "sb3_soup/hyperparams/soup_paper.yml")
+    for name in ("sb3_soup_zoo.pth", "_sb3_soup_zoo_hook.py", *shipped, "sb3_soup/zoo.py"):
         assert name in names
         assert re.search(rf"^{re.escape(name)},sha256=", record, re.MULTILINE)
     return wheel
