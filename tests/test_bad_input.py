@@ -118,6 +118,7 @@ INVALID = [
     (dict(check_finite=1), "check_finite", "True or False"),
     (dict(confidence="sometimes"), "confidence", re.escape("one of ('none', 'fixed', 'decayed', 'adaptive', 'ucb')")),
     (dict(ucb_lambda=-1.0), "ucb_lambda", re.escape("a float in [0, inf)")),
+    (dict(temperature_mode="scaled"), "temperature_mode", re.escape("one of ('absolute', 'relative')")),
     (dict(confidence=42), "confidence", "ConfidenceStrategy subclass"),
     (dict(preset="td3"), "preset", re.escape("one of ['dbddpg', 'ddpg', 'ma_bddpg', 'multi_ddpg', 'soup']")),
     (dict(preset=3), "preset", re.escape("one of ['dbddpg', 'ddpg', 'ma_bddpg', 'multi_ddpg', 'soup']")),
