@@ -35,7 +35,8 @@ def paper_settings() -> dict[str, Any]:
     The paper's hyper-parameters and update (Section 5 and Algorithm 1), for ``SOUP(policy, env, **paper_settings())``:
     Adam with actor lr 1e-4 and critic lr 3e-4, gamma 0.99, tau 1e-3, batch 1024, a replay memory of 1e6, the paper's
     networks (actor (256, **128**), critic (256, 256, **128**), LeakyReLU), one randomly drawn head pair trained per
-    episode on its own target, no delayed or smoothed updates. Not in the paper, our choices: Gaussian exploration
+    episode on its own target, no delayed or smoothed updates, the adaptive confidence's selection read as
+    ``softmax(v / temperature)`` (eq. 8). Not in the paper, our choices: Gaussian exploration
     noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per step down to 0.05, 1000 random steps first, and
     the confidence network's lr 1e-4. K is the user's (the paper: 5 or 10), as are the preset and the mask probability
     (not in the paper; the model's default, :data:`DEFAULT_MASK_PROB`).
@@ -58,6 +59,7 @@ def paper_settings() -> dict[str, Any]:
         noise_decay=0.999995,
         noise_std_min=0.05,
         confidence_lr=1e-4,
+        temperature_mode="absolute",
         policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
     )
 

@@ -37,7 +37,14 @@ from sb3_soup.optim import EnsembleAdam
 from sb3_soup.persistence import capture_rng_state, restore_rng_state
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data, upgrade
+from sb3_soup.saving import (
+    SAVE_FORMAT_VERSION,
+    check_saved_format,
+    package_version,
+    read_saved_data,
+    settings_missing_from,
+    upgrade,
+)
 from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
@@ -75,14 +82,14 @@ class SOUP(OffPolicyAlgorithm):
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: actor learning rate for Adam (the paper: 1e-4); it can be a function of the current
-        progress remaining (from 1 to 0)
+    :param learning_rate: actor learning rate for Adam (SB3's TD3 and DDPG: 1e-3; the paper: 1e-4); it can be a
+        function of the current progress remaining (from 1 to 0)
     :param critic_learning_rate: critic learning rate (the paper: 3e-4), float or schedule
     :param buffer_size: size of the replay buffer
     :param learning_starts: how many steps of the model to collect transitions for before learning starts
-        (uniformly random actions until then)
-    :param batch_size: Minibatch size for each gradient update (the paper: 1024)
-    :param tau: the soft update coefficient ("Polyak update", between 0 and 1) (the paper: 1e-3)
+        (uniformly random actions until then; SB3's default 100, the RL Zoo's MuJoCo entries 10000)
+    :param batch_size: Minibatch size for each gradient update (SB3's TD3: 256; the paper: 1024)
+    :param tau: the soft update coefficient ("Polyak update", between 0 and 1) (SB3's TD3: 0.005; the paper: 1e-3)
     :param gamma: the discount factor
     :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
         like ``(5, "step")`` or ``(2, "episode")``.
@@ -103,8 +110,9 @@ class SOUP(OffPolicyAlgorithm):
     :param alpha: fixed confidence of a critic head in its own candidate (``confidence="fixed"``), in (0, 1)
     :param decay: per-step decay of the confidence (``confidence="decayed"``), in (0, 1]
     :param temperature: softmax temperature of the selection policy trained by REINFORCE (``"adaptive"``), > 0
-    :param temperature_mode: "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness depends on the
-        scale of Q); "relative": the E-Q values in units of their spread across the state's candidates
+    :param temperature_mode: "relative" (default): the E-Q values in units of their spread across the state's
+        candidates, whatever the scale of Q; "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness
+        depends on the scale of Q: on Hopper it was flat for long stretches and saturated at others)
     :param confidence_lr: learning rate of the confidence network (``"adaptive"``)
     :param confidence_baseline: subtract a running-mean reward baseline in REINFORCE (False: the paper's raw reward)
     :param ucb_lambda: weight of the disagreement bonus of the optimistic selection (``confidence="ucb"``): while
@@ -122,8 +130,9 @@ class SOUP(OffPolicyAlgorithm):
     :param target_policy_noise: std of the Gaussian noise added to the target actions (TD3's target policy smoothing;
         the paper: 0, none), in the [-1, 1] scaled action space
     :param target_noise_clip: limit of the absolute value of that noise
-    :param noise_std: initial std of the Gaussian exploration noise (in the [-1, 1] scaled action space)
-    :param noise_decay: multiplicative decay of the noise std per environment step, in (0, 1]
+    :param noise_std: initial std of the Gaussian exploration noise (in the [-1, 1] scaled action space; default 0.1
+        constant, the RL Zoo's N(0, 0.1) for TD3 and DDPG)
+    :param noise_decay: multiplicative decay of the noise std per environment step, in (0, 1] (1: constant)
     :param noise_std_min: the noise std never goes below this
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
@@ -153,12 +162,12 @@ class SOUP(OffPolicyAlgorithm):
         self,
         policy: str | type[SOUPPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 1e-4,
-        critic_learning_rate: float | Schedule = 3e-4,
+        learning_rate: float | Schedule = 1e-3,
+        critic_learning_rate: float | Schedule = 1e-3,
         buffer_size: int = 1_000_000,
-        learning_starts: int = 1000,
-        batch_size: int = 1024,
-        tau: float = 1e-3,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
         gamma: float = 0.99,
         train_freq: int | tuple[int, str] = 1,
         gradient_steps: int = 1,
@@ -174,7 +183,7 @@ class SOUP(OffPolicyAlgorithm):
         alpha: float = 0.5,
         decay: float = 0.9995,
         temperature: float = 1.0,
-        temperature_mode: str = "absolute",
+        temperature_mode: str = "relative",
         confidence_lr: float = 1e-4,
         confidence_baseline: bool = True,
         ucb_lambda: float = 1.0,
@@ -184,9 +193,9 @@ class SOUP(OffPolicyAlgorithm):
         policy_delay: int = 1,
         target_policy_noise: float = 0.0,
         target_noise_clip: float = 0.5,
-        noise_std: float = 0.2,
-        noise_decay: float = 0.999995,
-        noise_std_min: float = 0.05,
+        noise_std: float = 0.1,
+        noise_decay: float = 1.0,
+        noise_std_min: float = 0.0,
         check_finite: bool = True,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -649,7 +658,7 @@ class SOUP(OffPolicyAlgorithm):
                 + ", ".join(f"{key}={data.get(key)!r}" for key in fixed if not isinstance(data.get(key), dict))
                 + "; create a new SOUP to use other values"
             )
-        kwargs = check_arguments(**kwargs)
+        kwargs = {**settings_missing_from(data), **check_arguments(**kwargs)}
         try:
             model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         except ValueError as error:

@@ -39,7 +39,11 @@ SETTINGS: dict[str, Any] = dict(
     alpha=0.5,
     decay=0.9995,
     temperature=1.0,
+    temperature_mode="absolute",
     confidence_lr=1e-4,
+    target_q="own",
+    policy_delay=1,
+    target_policy_noise=0.0,
     confidence_baseline=True,
     policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
 )

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_soup import SOUP
+from sb3_soup import SOUP, paper_settings
 from sb3_soup.buffers import BootstrappedReplayBufferSamples
 
 BATCH = 16
@@ -260,10 +260,14 @@ def test_one_head_is_ddpg():
     assert model.policy.select(obs).q_matrix is None
 
 
-def test_learning_rates_are_the_papers_by_default():
+def test_learning_rates_are_sb3s_by_default_and_the_papers_with_paper_settings():
     model = _model()
-    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
-    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(3e-4)
+    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    paper = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, **paper_settings())
+    assert paper.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
+    assert paper.critic.optimizer.param_groups[0]["lr"] == pytest.approx(3e-4)
+    assert (paper.batch_size, paper.tau, paper.train_heads, paper.target_q) == (1024, 1e-3, "active", "own")
 
 
 def test_critic_learning_rate_schedule_is_applied():

@@ -136,5 +136,5 @@ def test_a_run_without_learning_starts_uses_its_algorithms_default(tmp_path):
     spec.hyperparams.pop("learning_starts", None)
     _hand_made_run(spec, [100] * 30)
     _, results, _ = trap_report(tmp_path, window=500, eval_episodes=0, trap_lengths=(100, 100))
-    # SOUP's default warm-up is 1000 steps: four whole windows of 500 after it (SB3's 100 would give five)
-    assert (results[0].learning_steps, results[0].steps_trapped) == (2000, 2000)
+    # SOUP's default warm-up is SB3's 100 steps: five whole windows of 500 after it (a 1000-step warm-up would give four)
+    assert (results[0].learning_steps, results[0].steps_trapped) == (2500, 2500)

@@ -19,7 +19,8 @@ import pytest
 import yaml
 
 import _sb3_soup_zoo_hook
-from sb3_soup import zoo
+from sb3_soup import paper_settings, zoo
+from sb3_soup.presets import hyperparams_file
 
 REPO = Path(__file__).resolve().parent.parent
 ENV_ID = "Pendulum-v1"
@@ -112,14 +113,26 @@ def test_hyperparams_file_has_the_issues_envs():
         for version in ("v4", "v5"):
             assert f"{env}-{version}" in entries
     assert "Pendulum-v1" in entries
+    for values in entries.values():
+        # SOUP's defaults, only the budget set (confidence and mask_prob left so that `--hyperparams preset:...` can set them)
+        assert set(values) <= {"n_timesteps", "policy", "n_heads", "learning_starts"}
+    assert entries["Hopper-v4"]["learning_starts"] == 10_000 and entries["Walker2d-v5"] == entries["Hopper-v4"]
+
+
+def test_paper_hyperparams_file_is_paper_settings():
+    """soup_paper.yml's MuJoCo entries are sb3_soup.paper_settings() (Section 5 of the paper), with the Zoo's warm-up."""
+    entries = yaml.safe_load(hyperparams_file("soup_paper").read_text())
     paper = entries["Hopper-v4"]
-    # Section 5 of the paper
     assert (paper["learning_rate"], paper["critic_learning_rate"], paper["gamma"], paper["tau"]) == (1e-4, 3e-4, 0.99, 1e-3)
     assert (paper["batch_size"], paper["buffer_size"], paper["n_heads"]) == (1024, 1_000_000, 10)
+    settings = paper_settings()
+    for key, value in paper.items():
+        if key == "policy_kwargs":
+            assert eval(value) == settings[key]
+        elif key not in ("n_timesteps", "policy", "n_heads", "learning_starts"):
+            assert settings[key] == value, key
     assert entries["Walker2d-v5"] == paper
-    for values in entries.values():
-        # left to SOUP's defaults, so that `--hyperparams preset:...` can set them
-        assert "confidence" not in values and "mask_prob" not in values
+    assert all("confidence" not in values and "mask_prob" not in values for values in entries.values())
 
 
 def test_pendulum_entry_is_the_demos_settings():
