@@ -14,7 +14,9 @@ NET_ARCHS: dict[str, dict[str, list[int]]] = {
     "big": dict(pi_body=[400], pi_head=[300], qf_body=[400, 300], qf_head=[300]),
 }
 N_HEADS = (3, 5, 10)
-CONFIDENCES = ("none", "fixed", "decayed", "adaptive")
+CONFIDENCES = ("none", "fixed", "decayed", "adaptive", "ucb")
+TRAIN_HEADS = ("active", "all_critics", "all")
+TARGET_Q = ("own", "min_pair")
 
 
 def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
@@ -41,8 +43,8 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """
     Sample SOUP hyper-parameters: the DDPG ones (actor and critic learning rates, batch size, tau, gamma, train
-    frequency, network sizes) and the ensemble's (number of heads, bootstrap mask probability, confidence strategy
-    and the adaptive confidence network's learning rate, exploration noise).
+    frequency, network sizes) and the ensemble's (number of heads, bootstrap mask probability, training scheme and
+    targets, confidence strategy and the adaptive confidence network's learning rate, exploration noise).
 
     :param trial: the optuna trial
     :param n_actions: size of the action space (unused: SOUP's noise is scaled to [-1, 1] actions)
@@ -62,6 +64,8 @@ def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args:
         "n_heads": trial.suggest_categorical("n_heads", list(N_HEADS)),
         "mask_prob": trial.suggest_float("mask_prob", 0.3, 1.0),
         "noise_std": trial.suggest_float("noise_std", 0.05, 0.5),
+        "train_heads": trial.suggest_categorical("train_heads", list(TRAIN_HEADS)),
+        "target_q": trial.suggest_categorical("target_q", list(TARGET_Q)),
         "confidence": trial.suggest_categorical("confidence", list(CONFIDENCES)),
     }
     if params["confidence"] == "adaptive":
