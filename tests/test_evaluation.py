@@ -86,3 +86,18 @@ def test_report_writes_the_evaluation_statistics(tmp_path):
     assert joined["models"]["soup-short"]["scores"] == [500.0]
     with pytest.raises(ValueError, match="both hold the runs"):
         make_report(out, extra=[out])
+
+
+def test_an_unfinished_run_joins_the_evaluation_at_the_steps_it_reached(tmp_path):
+    """With ``partial``, a run still training counts at the steps it has evaluated; its model is not dropped."""
+    out = tmp_path / "runs"
+    specs = build_grid("Hopper-v4", out, suite="benchmark", models=["ddpg_zoo"], seeds=[0, 1], timesteps=20)
+    _evaluated_run(specs[0], {10: 100.0, 20: 200.0})
+    _evaluated_run(specs[1], {10: 300.0})  # stopped after its first evaluation
+    status = {"status": "interrupted", "step": 15, "total": 20}
+    (out / "ddpg_zoo" / "seed_1" / STATUS_FILE).write_text(json.dumps(status))
+    (out / "ddpg_zoo" / "seed_1" / DONE_FILE).unlink()
+    at = {step: make_report(out, partial=True, eval_step=step, bootstrap_reps=REPS)["evaluation"] for step in (10, 20)}
+    at = {step: data["Hopper-v4"] for step, data in at.items()}
+    assert at[10]["models"]["ddpg_zoo"]["scores"] == [100.0, 300.0]
+    assert at[20]["models"]["ddpg_zoo"]["scores"] == [200.0] and at[20]["models"]["ddpg_zoo"]["seeds"] == [0]

@@ -431,7 +431,12 @@ def evaluation_report(
     curves: dict[str, Any] = {}
     for env_id, env_rows in rows.items():
         at = step if step is not None else min(max(evaluation.common_steps(runs)) for _, _, runs in env_rows)
-        env_rows = [(column, records, runs) for column, records, runs in env_rows if at in evaluation.common_steps(runs)]
+        # the runs evaluated at that step (an unfinished run may not be there yet); a model without any is left out
+        env_rows = [
+            (column, [record for record, run in kept], [run for _, run in kept])
+            for column, records, runs in env_rows
+            if (kept := [(record, run) for record, run in zip(records, runs) if at in np.asarray(run[0]).tolist()])
+        ]
         scores = {column.model: evaluation.run_scores(runs, at) for column, _, runs in env_rows}
         reference = scores.get(baseline) if baseline is not None else None
         data[env_id] = {"step": at, "baseline": baseline if reference is not None else None, "models": {}}
