@@ -28,9 +28,6 @@ SAVE_FORMAT_VERSION = 2
 # Attributes renamed since an older format: format -> {old name: new name}
 _RENAMED = {2: {"_active_heads": "_active_pairs", "exploration_std": "current_noise_std"}}
 
-# Settings added after 0.1.0a0 whose default is not what 0.1.0a0 did: a file without them gets the value its model had
-_BEFORE_ADDED = {"temperature_mode": "absolute"}
-
 MIN_READABLE_FORMAT = 0
 """Oldest format this version reads (0: sb3-soup 0.1.0a0 files written before the format was stored)."""
 
@@ -130,17 +127,6 @@ def check_saved_format(data: dict[str, Any], path: Any) -> int:
             f"sb3-soup {saved_version} (pip install sb3-soup=={saved_version}) and retrain, or keep using that version"
         )
     return saved_format
-
-
-def settings_missing_from(data: dict[str, Any]) -> dict[str, Any]:
-    """
-    The settings a file saved before they existed lacks, with the value its model had (SB3's ``load`` would give them
-    today's defaults): e.g. ``temperature_mode="absolute"``, the only selection 0.1.0a0 had.
-
-    :param data: the file's ``data`` (see :func:`read_saved_data`)
-    :return: the settings to load the model with
-    """
-    return {key: value for key, value in _BEFORE_ADDED.items() if key not in data}
 
 
 def upgrade(model: Any, saved_format: int) -> None:

@@ -37,14 +37,7 @@ from sb3_soup.optim import EnsembleAdam
 from sb3_soup.persistence import capture_rng_state, restore_rng_state
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.saving import (
-    SAVE_FORMAT_VERSION,
-    check_saved_format,
-    package_version,
-    read_saved_data,
-    settings_missing_from,
-    upgrade,
-)
+from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data, upgrade
 from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
@@ -110,9 +103,9 @@ class SOUP(OffPolicyAlgorithm):
     :param alpha: fixed confidence of a critic head in its own candidate (``confidence="fixed"``), in (0, 1)
     :param decay: per-step decay of the confidence (``confidence="decayed"``), in (0, 1]
     :param temperature: softmax temperature of the selection policy trained by REINFORCE (``"adaptive"``), > 0
-    :param temperature_mode: "relative" (default): the E-Q values in units of their spread across the state's
-        candidates, whatever the scale of Q; "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness
-        depends on the scale of Q: on Hopper it was flat for long stretches and saturated at others)
+    :param temperature_mode: "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness depends on the
+        scale of Q); "relative": the E-Q values in units of their spread across the state's candidates, whatever the
+        scale of Q (not the default: it did not learn better in docs/results.md's measurements)
     :param confidence_lr: learning rate of the confidence network (``"adaptive"``)
     :param confidence_baseline: subtract a running-mean reward baseline in REINFORCE (False: the paper's raw reward)
     :param ucb_lambda: weight of the disagreement bonus of the optimistic selection (``confidence="ucb"``): while
@@ -183,7 +176,7 @@ class SOUP(OffPolicyAlgorithm):
         alpha: float = 0.5,
         decay: float = 0.9995,
         temperature: float = 1.0,
-        temperature_mode: str = "relative",
+        temperature_mode: str = "absolute",
         confidence_lr: float = 1e-4,
         confidence_baseline: bool = True,
         ucb_lambda: float = 1.0,
@@ -658,7 +651,7 @@ class SOUP(OffPolicyAlgorithm):
                 + ", ".join(f"{key}={data.get(key)!r}" for key in fixed if not isinstance(data.get(key), dict))
                 + "; create a new SOUP to use other values"
             )
-        kwargs = {**settings_missing_from(data), **check_arguments(**kwargs)}
+        kwargs = check_arguments(**kwargs)
         try:
             model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         except ValueError as error:

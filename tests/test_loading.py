@@ -13,7 +13,6 @@ import pytest
 import torch as th
 from stable_baselines3 import TD3
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.save_util import data_to_json, json_to_data
 
 import sb3_soup.saving
 from sb3_soup import SOUP, __version__
@@ -138,21 +137,6 @@ def test_format_1_files_load_under_this_versions_attribute_names(saved, tmp_path
     assert np.array_equal(loaded._active_pairs, SOUP.load(saved / "model.zip")._active_pairs)
     assert "exploration_std" not in vars(loaded) and loaded.current_noise_std > 0
 
-
-def test_files_saved_before_a_setting_existed_load_with_the_value_their_model_had(saved, tmp_path):
-    """0.1.0a0 had only the absolute temperature; today's default is relative: its files keep selecting as they did."""
-
-    def format_1(data):
-        data.update(_sb3_soup_format=1, _sb3_soup_version="0.1.0a0")
-        data["_active_heads"] = data.pop("_active_pairs")
-        del data["temperature_mode"]
-        policy_kwargs = json_to_data(json.dumps({"policy_kwargs": data["policy_kwargs"]}))["policy_kwargs"]
-        del policy_kwargs["confidence_kwargs"]["temperature_mode"]
-        data["policy_kwargs"] = json.loads(data_to_json({"policy_kwargs": policy_kwargs}))["policy_kwargs"]
-
-    assert SOUP.load(saved / "model.zip").temperature_mode == "relative"
-    loaded = SOUP.load(_rewrite(saved / "model.zip", tmp_path / "format_1.zip", format_1))
-    assert loaded.temperature_mode == "absolute" and loaded.policy.confidence.temperature_mode == "absolute"
 
 
 # ---------------------------------------------------------------- another K, another preset: loaded as saved
