@@ -138,7 +138,6 @@ def test_format_1_files_load_under_this_versions_attribute_names(saved, tmp_path
     assert "exploration_std" not in vars(loaded) and loaded.current_noise_std > 0
 
 
-
 # ---------------------------------------------------------------- another K, another preset: loaded as saved
 
 
