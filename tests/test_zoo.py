@@ -227,13 +227,14 @@ def test_train_without_conf_file(trained):
     assert (run_dir / f"{ENV_ID}.zip").is_file()
     assert (run_dir / "evaluations.npz").is_file()
     config = saved_config(trained)
-    # soup.yml's Pendulum-v1 entry, with the command line's overrides
-    assert config["n_heads"] == 5 and config["gamma"] == 0.98 and config["batch_size"] == 32
+    # soup.yml's Pendulum-v1 entry (the budget; the rest is SOUP's defaults), with the command line's overrides
+    assert config["n_heads"] == 5 and "gamma" not in config
+    assert config["learning_starts"] == 100 and config["batch_size"] == 32
 
     from sb3_soup import SOUP
 
     model = SOUP.load(run_dir / f"{ENV_ID}.zip")
-    assert model.num_timesteps == 300
+    assert model.num_timesteps == 300 and model.gamma == 0.99 and model.batch_size == 32
 
 
 @pytest.mark.slow
