@@ -435,7 +435,7 @@ def evaluation_report(
         env_rows = [
             (column, [record for record, run in kept], [run for _, run in kept])
             for column, records, runs in env_rows
-            if (kept := [(record, run) for record, run in zip(records, runs) if at in np.asarray(run[0]).tolist()])
+            if (kept := [(record, run) for record, run in zip(records, runs) if at in evaluation.common_steps([run])])
         ]
         scores = {column.model: evaluation.run_scores(runs, at) for column, _, runs in env_rows}
         reference = scores.get(baseline) if baseline is not None else None
