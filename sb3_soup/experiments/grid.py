@@ -86,6 +86,7 @@ VARIANTS: dict[str, Variant] = {
         # batch 256, tau 0.005, N(0, 0.1) noise, 10k random steps, net_arch [400, 300]).
         Variant("ddpg_zoo", "sb3_ddpg", "DDPG (RL Zoo)", {}, uses_heads=False, source="zoo"),
         Variant("td3_zoo", "td3", "TD3 (RL Zoo)", {}, uses_heads=False, source="zoo"),
+        Variant("sac_zoo", "sac", "SAC (RL Zoo)", {}, uses_heads=False, source="zoo"),
         # The benchmark suite's SOUPs: with its defaults (what a user gets), and the paper's (the models suite's soup)
         Variant("soup_defaults", "soup", "SOUP (defaults)", {}, uses_heads=False, source="defaults"),
         Variant("soup_paper", "soup", "SOUP, the paper's (K={K})", {"preset": "soup"}, same_as="soup"),
@@ -410,30 +411,33 @@ ZOO_NOISE_TYPE = "normal"
 
 def zoo_hyperparams(algo: str, env_id: str) -> dict[str, Any]:
     """
-    The RL Zoo's own hyper-parameters for an SB3 algorithm on an env, as ``python -m rl_zoo3.train`` reads them.
+    The RL Zoo's own hyper-parameters for an SB3 algorithm on an env, as ``python -m rl_zoo3.train`` reads them: the
+    env's entry, or the file's ``default`` entry for an env it does not list (what the Zoo itself falls back to).
 
-    :param algo: ``"td3"`` or ``"sb3_ddpg"``
+    :param algo: ``"td3"``, ``"sb3_ddpg"`` or ``"sac"``
     :param env_id: the environment id
-    :return: constructor arguments, with the Gaussian noise's std as ``noise_std`` (the runner makes it
-        ``NormalActionNoise``)
+    :return: constructor arguments, with the Gaussian noise's std as ``noise_std`` where the entry sets a noise type
+        (the runner makes it ``NormalActionNoise``; TD3 and DDPG without one get ``noise_std`` 0)
     """
     # Found, not imported: importing rl_zoo3 replaces gymnasium's TimeLimit for the whole process (rl_zoo3.gym_patches),
     # and an env made afterwards no longer matches the state of one made before (sb3_soup.persistence.set_env_state)
     package = importlib.util.find_spec("rl_zoo3")
     if package is None or package.origin is None:
         raise ImportError("the RL Zoo's hyper-parameters need rl_zoo3: pip install rl-zoo3")
-    zoo_algo = {"td3": "td3", "sb3_ddpg": "ddpg"}[algo]
+    zoo_algo = {"td3": "td3", "sb3_ddpg": "ddpg", "sac": "sac"}[algo]
     file = Path(package.origin).parent / "hyperparams" / f"{zoo_algo}.yml"
     with open(file) as stream:
         entries = yaml.safe_load(stream) or {}
-    if env_id not in entries:
-        raise ValueError(f"the RL Zoo has no {zoo_algo} hyper-parameters for {env_id} (in {file}); use another env")
-    entry = dict(entries[env_id])
+    name = env_id if env_id in entries else "default"
+    if name not in entries:
+        raise ValueError(f"the RL Zoo has no {zoo_algo} hyper-parameters for {env_id} nor a default entry (in {file})")
+    entry = dict(entries[name])
     noise_type = entry.get("noise_type")
     if noise_type not in (None, ZOO_NOISE_TYPE):
         raise ValueError(f"the RL Zoo's {zoo_algo} entry for {env_id} uses {noise_type!r} noise; the runner supports 'normal'")
     params = {key: value for key, value in entry.items() if key not in ZOO_ONLY_KEYS}
-    params["noise_std"] = float(entry.get("noise_std", 0.0)) if noise_type else 0.0
+    if noise_type or algo != "sac":
+        params["noise_std"] = float(entry.get("noise_std", 0.0)) if noise_type else 0.0
     return params
 
 

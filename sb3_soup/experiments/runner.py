@@ -88,7 +88,7 @@ def resolve_policy_kwargs(value: Any) -> dict[str, Any] | None:
 
 def algo_class(algo: str) -> type[BaseAlgorithm]:
     """
-    :param algo: ``"soup"``, ``"td3"`` or ``"sb3_ddpg"``
+    :param algo: ``"soup"``, ``"td3"``, ``"sb3_ddpg"`` or ``"sac"``
     :return: the class that trains it
     """
     if algo == "soup":
@@ -97,9 +97,9 @@ def algo_class(algo: str) -> type[BaseAlgorithm]:
         except ImportError as error:
             raise ImportError("sb3_soup.SOUP is not available (the core algorithm is not installed on this branch)") from error
         return SOUP
-    from stable_baselines3 import DDPG, TD3
+    from stable_baselines3 import DDPG, SAC, TD3
 
-    classes: dict[str, type] = {"td3": TD3, "sb3_ddpg": DDPG}
+    classes: dict[str, type] = {"td3": TD3, "sb3_ddpg": DDPG, "sac": SAC}
     if algo not in classes:
         raise ValueError(f"Unknown algorithm {algo!r}")
     return classes[algo]
@@ -121,7 +121,7 @@ def build_model(spec: Any, env: Any) -> Any:
     if kwargs["policy_kwargs"] is None:
         del kwargs["policy_kwargs"]
     policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else "MlpPolicy"
-    if spec.algo != "soup":
+    if spec.algo != "soup" and "noise_std" in kwargs:
         from stable_baselines3.common.noise import NormalActionNoise
 
         n_actions = int(np.prod(env.action_space.shape))
