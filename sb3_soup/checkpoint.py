@@ -19,17 +19,9 @@ generators and the environment back as they were. SB3's own ``CheckpointCallback
 inside a step (after ``env.step``, before the transition is stored and the model trained), so its files disagree with
 each other (the environment is one step ahead of the model's last observation, the buffer one transition short), and
 it saves neither the random generators nor the environment. :class:`ResumableCheckpointCallback` saves between two
-rollouts instead, where everything agrees, with the same arguments and file names.
-
-What stays inexact, and why:
-
-- the environment state is restored for ``DummyVecEnv`` environments whose layers pickle (pure-Python and MuJoCo
-  envs do; a ``SubprocVecEnv``'s envs live in other processes, a renderer's window does not pickle): otherwise the
-  checkpoint is saved without it (with a warning) and the resumed run starts new episodes;
-- SB3 calls ``action_noise.reset()`` when ``learn`` starts: an ``OrnsteinUhlenbeckActionNoise`` restarts from zero
-  (SOUP's built-in Gaussian noise and ``NormalActionNoise`` have no state);
-- callbacks other than this one start afresh (e.g. ``EvalCallback`` counts its calls from 0);
-- other thread counts, devices (GPU kernels are not bit-reproducible) or library versions change the floating point.
+rollouts instead, where everything agrees, with the same arguments and file names. What stays inexact (a
+``SubprocVecEnv``, an env that does not pickle, ``OrnsteinUhlenbeckActionNoise``, other callbacks, other hardware or
+versions), and why: docs/reliability.md.
 """
 
 import copy
