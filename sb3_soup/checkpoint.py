@@ -1,41 +1,37 @@
 """
-Checkpoints a run resumes from exactly: after a crash, a kill or a planned stop, loading the last checkpoint and calling
-``learn(remaining, reset_num_timesteps=False)`` gives the same actions and the same parameters as a run that was never
-interrupted (on CPU, same library versions and thread count).
+Saving and resuming runs, for any SB3 algorithm (SOUP, TD3, DDPG, SAC...). After a crash, a kill or a planned stop,
+loading the last checkpoint and calling ``learn(remaining, reset_num_timesteps=False)`` gives the same actions and the
+same parameters as a run that was never interrupted (on CPU, same library versions and thread count).
 
-A checkpoint is four files, written by :class:`ResumableCheckpointCallback` (or :func:`save_checkpoint`,
-:func:`save_resumable`), each atomically (:func:`sb3_soup.persistence.atomic_write`) and the model zip last, so that
-a checkpoint, found by its zip, is complete or absent:
+A checkpoint is up to four files, written by :class:`ResumableCheckpointCallback` or :func:`save_checkpoint`, each
+atomically (:func:`atomic_write`) and the model zip last, so that a checkpoint, found by its zip, is complete or absent:
 
-- the replay buffer with its bootstrap masks (``model.save_replay_buffer``),
+- the replay buffer (``model.save_replay_buffer``; SOUP's holds the bootstrap masks),
 - optionally the ``VecNormalize`` statistics, as SB3 saves them,
-- the training state: the environment's state (:func:`sb3_soup.persistence.get_env_state`: every layer of a
-  ``DummyVecEnv``, down to the simulator) and, for algorithms other than SOUP, the random generators' states,
-- the model zip (``model.save``: networks, optimizers, strategy state, step counters, last observation, the active
-  head pairs; for SOUP also the random generators' states, which ``SOUP.load`` restores).
+- the training state (:func:`save_training_state`): the random generators' states (:func:`capture_rng_state`) and the
+  environment's state (:func:`get_env_state`: every layer of a ``DummyVecEnv``, down to the simulator),
+- the model zip (``model.save``, SB3's: networks, optimizers, step counters, last observation; for SOUP also the
+  confidence strategy's state and the active head pairs).
 
-Why SB3's own ``CheckpointCallback`` cannot give this: it saves inside a step (after ``env.step``, before the
-transition is stored and the model trained), so its files disagree with each other (the environment is one step ahead
-of the model's last observation, the buffer one transition short), and it saves neither the random generators nor the
-environment. SB3's ``load`` then resets the environment (``force_reset=True``) and reseeds the generators with the
-model's seed: a faithful continuation, not the same run. :class:`ResumableCheckpointCallback` saves between two
-rollouts instead, where everything agrees, with the same arguments and file names.
-
-What stays inexact, and why:
-
-- the environment state is restored for ``DummyVecEnv`` environments whose layers pickle (pure-Python and MuJoCo
-  envs do; a ``SubprocVecEnv``'s envs live in other processes, a renderer's window does not pickle): otherwise the
-  checkpoint is saved without it (with a warning) and the resumed run starts new episodes;
-- SB3 calls ``action_noise.reset()`` when ``learn`` starts: an ``OrnsteinUhlenbeckActionNoise`` restarts from zero
-  (SOUP's built-in Gaussian noise and ``NormalActionNoise`` have no state);
-- callbacks other than this one start afresh (e.g. ``EvalCallback`` counts its calls from 0);
-- other thread counts, devices (GPU kernels are not bit-reproducible) or library versions change the floating point.
+``model.save`` and ``load`` stay SB3's: ``load`` resets the environment (``force_reset=True``) and reseeds the random
+generators with the model's seed, a faithful continuation but not the same run; :func:`load_checkpoint` puts the
+generators and the environment back as they were. SB3's own ``CheckpointCallback`` cannot give this either: it saves
+inside a step (after ``env.step``, before the transition is stored and the model trained), so its files disagree with
+each other (the environment is one step ahead of the model's last observation, the buffer one transition short), and
+it saves neither the random generators nor the environment. :class:`ResumableCheckpointCallback` saves between two
+rollouts instead, where everything agrees, with the same arguments and file names. What stays inexact (a
+``SubprocVecEnv``, an env that does not pickle, ``OrnsteinUhlenbeckActionNoise``, other callbacks, other hardware or
+versions), and why: docs/reliability.md.
 """
 
+import copy
 import dataclasses
+import io
+import json
 import os
 import pickle
 import pickletools
+import random
 import re
 import warnings
 import zipfile
@@ -43,27 +39,28 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
+import gymnasium as gym
 import numpy as np
+import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CheckpointCallback
+from stable_baselines3.common.monitor import ResultsWriter
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import open_path
 from stable_baselines3.common.type_aliases import GymEnv
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize, unwrap_vec_normalize
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_normalize
 
-from sb3_soup.persistence import (
-    TMP_MARK,
-    EnvStateError,
-    atomic_write,
-    capture_rng_state,
-    get_env_state,
-    restore_rng_state,
-    set_env_state,
-)
-from sb3_soup.soup import SOUP
+TMP_MARK = ".tmp-"
+"""In the names of :func:`atomic_write`'s temporary files: ``.{name}.tmp-{pid}``, next to the file being written."""
 
-TRAINING_STATE_FORMAT = 2
-"""Format of the training-state files this version writes and reads (2: the random generators only when the model zip
-does not hold them)."""
+TRAINING_STATE_FORMAT = 3
+"""Format of the training-state files this version writes and reads (3: the random generators for every algorithm)."""
+
+_ZIP_MAGIC = b"PK\x03\x04"
+
+# Live objects that stay with the running environment (open log files): never saved, never replaced
+_KEPT_LIVE: tuple[type, ...] = (ResultsWriter, io.IOBase)
 
 
 class StopTraining(Exception):
@@ -73,7 +70,226 @@ class StopTraining(Exception):
     """
 
 
-# ---------------------------------------------------------------- training state (environment + random generators)
+# ---------------------------------------------------------------- files: atomic writes, model zips
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[Path], Any]) -> None:
+    """
+    Write a file atomically: ``write(tmp)``, an fsync, then ``tmp`` renamed to ``path``. ``path`` is the whole new
+    file or what it was before, never a part (a temporary file left by a kill is named ``.{name}.tmp-{pid}``).
+
+    :param path: the file
+    :param write: writes the content to the path it is given (e.g. ``model.save``, ``Path.write_text``)
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as file:
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def read_model_data(path: str | Path | io.BufferedIOBase) -> dict[str, Any]:
+    """
+    Check a model zip written by ``model.save`` (any SB3 algorithm) and read its ``data`` entry as JSON, unpickling
+    nothing, with a clear error for a file that is not a model zip, a truncated one (a process killed while writing it)
+    or a corrupt one (the CRC of every entry is checked).
+
+    :param path: the model file (``.zip`` may be left out, as with SB3's ``load``) or an open binary file (left where
+        it was found, for SB3's ``load`` to read it)
+    :return: the saved attributes; pickled ones are left as SB3 stores them (dicts with ``:serialized:``)
+    :raises ValueError: for a file that is not a complete model zip
+    """
+    file = open_path(path, "r", suffix="zip")
+    start = file.tell()
+    name = str(path) if isinstance(path, (str, os.PathLike)) else f"<{type(path).__name__}>"
+    advice = "load an earlier checkpoint (sb3_soup.checkpoint.latest_checkpoint finds the newest complete one)"
+    truncated = f"{name} is a truncated or corrupt model zip ({{}}): a process killed while saving leaves such files; {advice}"
+    try:
+        head = file.read(64)
+        file.seek(start)
+        try:
+            archive = zipfile.ZipFile(file)
+        except (zipfile.BadZipFile, EOFError) as error:
+            if head[:4] == _ZIP_MAGIC:
+                raise ValueError(truncated.format(error)) from error
+            raise ValueError(
+                f"{name} is not a saved model: it is not a zip archive (model.save writes a .zip; replay buffers are "
+                "loaded with model.load_replay_buffer)"
+            ) from error
+        with archive:
+            if "data" not in archive.namelist():
+                # SB3 writes the 'data' entry first: a zip that starts with it but does not list it was cut short (the
+                # zip reader then finds the directory of policy.pth, itself a zip, inside the remains)
+                if head[:4] == _ZIP_MAGIC and head[30 : 30 + int.from_bytes(head[26:28], "little")] == b"data":
+                    raise ValueError(truncated.format("its directory has no 'data' entry"))
+                raise ValueError(
+                    f"{name} is a zip archive but not a saved model: it has no 'data' entry (SB3's model.save writes "
+                    "data, policy.pth and the optimizers' .pth files)"
+                )
+            try:
+                for entry in archive.namelist():
+                    with archive.open(entry) as content:
+                        while content.read(1 << 20):  # to its end: the CRC is checked there
+                            pass
+            except (zipfile.BadZipFile, EOFError) as error:
+                raise ValueError(f"{name} is a corrupt model zip ({error}): {advice}") from error
+            raw = archive.read("data")
+    finally:
+        if isinstance(path, (str, os.PathLike)):
+            file.close()
+        else:
+            file.seek(start)
+    try:
+        data = json.loads(raw)
+    except ValueError as error:
+        raise ValueError(f"{name} is a corrupt model zip: its 'data' entry is not valid JSON ({error})") from error
+    if not isinstance(data, dict):
+        raise ValueError(f"{name} is not a saved model: its 'data' entry holds {type(data).__name__}, not a dict")
+    return data
+
+
+# ---------------------------------------------------------------- random generators
+
+
+def capture_rng_state(action_space: Any = None) -> dict[str, Any]:
+    """
+    The states of the random generators a training run draws from: Python's ``random``, NumPy's global generator,
+    torch's CPU and (when in use) CUDA generators.
+
+    :param action_space: also keep this gymnasium space's generator (SB3 samples warm-up actions from it)
+    :return: a picklable dict for :func:`restore_rng_state`
+    """
+    state: dict[str, Any] = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": th.get_rng_state()}
+    if th.cuda.is_available() and th.cuda.is_initialized():
+        state["torch_cuda"] = th.cuda.get_rng_state_all()
+    if action_space is not None:
+        state["action_space"] = copy.deepcopy(getattr(action_space, "_np_random", None))
+    return state
+
+
+def restore_rng_state(state: dict[str, Any], action_space: Any = None) -> None:
+    """
+    Put the random generators back in the state :func:`capture_rng_state` returned.
+
+    :param state: the captured state
+    :param action_space: restore this space's generator too (when it was captured)
+    """
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    th.set_rng_state(state["torch"])
+    cuda_states = state.get("torch_cuda")
+    if cuda_states is not None and th.cuda.is_available() and th.cuda.device_count() == len(cuda_states):
+        th.cuda.set_rng_state_all(cuda_states)
+    if action_space is not None and state.get("action_space") is not None:
+        action_space._np_random = copy.deepcopy(state["action_space"])
+
+
+# ---------------------------------------------------------------- environment state
+
+
+class EnvStateError(Exception):
+    """The environment's state cannot be saved (or restored into this environment)."""
+
+
+def _qualified_name(obj: Any) -> str:
+    return f"{type(obj).__module__}.{type(obj).__qualname__}"
+
+
+def _vec_layers(vec_env: VecEnv) -> list[VecEnv]:
+    """The VecEnv wrappers, outermost first, then the base VecEnv."""
+    layers = [vec_env]
+    while isinstance(layers[-1], VecEnvWrapper):
+        layers.append(layers[-1].venv)
+    return layers
+
+
+def _env_layers(env: gym.Env) -> list[Any]:
+    """The gymnasium wrappers of a sub-environment, outermost first, then the unwrapped env."""
+    layers = [env]
+    while isinstance(layers[-1], gym.Wrapper):
+        layers.append(layers[-1].env)
+    return layers
+
+
+def _layer_state(layer: Any, links: tuple[str, ...]) -> dict[str, Any]:
+    """A layer's attributes, without its links to the layers below and without live log files."""
+    return {key: value for key, value in vars(layer).items() if key not in links and not isinstance(value, _KEPT_LIVE)}
+
+
+def _structure(vec_env: VecEnv) -> dict[str, Any]:
+    layers = _vec_layers(vec_env)
+    base = layers[-1]
+    envs = base.envs if isinstance(base, DummyVecEnv) else []
+    return {
+        "vec_layers": [_qualified_name(layer) for layer in layers],
+        "envs": [[_qualified_name(layer) for layer in _env_layers(env)] for env in envs],
+    }
+
+
+def get_env_state(vec_env: VecEnv) -> bytes:
+    """
+    The state of a ``DummyVecEnv`` (and of the VecEnv wrappers around it): every attribute of every layer, down to
+    each sub-environment's simulator, pickled (open log files such as ``Monitor``'s are left out).
+
+    Layers are saved attribute by attribute, not through their own pickling, which some envs restrict to their
+    constructor arguments (gymnasium's ``EzPickle``, used by MuJoCo envs, would lose the simulator state).
+
+    :param vec_env: the environment
+    :return: the state, for :func:`set_env_state`
+    :raises EnvStateError: when it is not a ``DummyVecEnv`` or a layer does not pickle
+    """
+    layers = _vec_layers(vec_env)
+    base = layers[-1]
+    if not isinstance(base, DummyVecEnv):
+        raise EnvStateError(
+            f"only DummyVecEnv environments can be saved (their envs live in this process), not {type(base).__name__}"
+        )
+    state = {
+        "structure": _structure(vec_env),
+        "vec_layers": [_layer_state(layer, ("venv", "class_attributes")) for layer in layers[:-1]],
+        "base": _layer_state(base, ("envs",)),
+        "envs": [[_layer_state(layer, ("env",)) for layer in _env_layers(env)] for env in base.envs],
+    }
+    try:
+        return cloudpickle.dumps(state)
+    except Exception as error:
+        raise EnvStateError(f"the environment's state does not pickle: {type(error).__name__}: {error}") from error
+
+
+def set_env_state(vec_env: VecEnv, env_state: bytes) -> None:
+    """
+    Put an environment back in a state saved by :func:`get_env_state`. It must be built the same way (same wrappers,
+    same number of envs); live log files (``Monitor``'s) stay those of ``vec_env``.
+
+    :param vec_env: the environment, e.g. freshly made
+    :param env_state: from :func:`get_env_state`
+    :raises EnvStateError: when ``vec_env`` is not built like the saved one
+    """
+    state = pickle.loads(env_state)
+    structure = _structure(vec_env)
+    if structure != state["structure"]:
+        raise EnvStateError(
+            f"the environment is not built like the saved one: saved {state['structure']}, given {structure} "
+            "(VecEnv wrappers outermost first, then each env's wrappers)"
+        )
+    layers = _vec_layers(vec_env)
+    for layer, saved in zip(layers[:-1], state["vec_layers"]):
+        vars(layer).update(saved)
+    base = layers[-1]
+    assert isinstance(base, DummyVecEnv)
+    vars(base).update(state["base"])
+    for env, saved_layers in zip(base.envs, state["envs"]):
+        for layer, saved in zip(_env_layers(env), saved_layers):
+            vars(layer).update(saved)
+
+
+# ---------------------------------------------------------------- training state (random generators + environment)
 
 
 def _check_at_boundary(model: BaseAlgorithm, vec_env: VecEnv) -> None:
@@ -93,24 +309,11 @@ def _check_at_boundary(model: BaseAlgorithm, vec_env: VecEnv) -> None:
             )
 
 
-def _dump_pickle(data: Any) -> Callable[[Path], None]:
-    def write(path: Path) -> None:
-        with open(path, "wb") as file:
-            pickle.dump(data, file, protocol=pickle.HIGHEST_PROTOCOL)
-
-    return write
-
-
-def _zip_holds_rng_state(model: BaseAlgorithm) -> bool:
-    """Whether ``model.save`` stores the random generators' states (``SOUP.save`` does, and ``SOUP.load`` restores them)."""
-    return isinstance(model, SOUP)
-
-
 def save_training_state(model: BaseAlgorithm, path: str | os.PathLike) -> bool:
     """
-    Save what ``model.save`` and ``model.save_replay_buffer`` leave out: the environment's state and, for algorithms
-    whose model zip does not hold them (all but SOUP), the random generators' states. Call it between two rollouts
-    (from a callback's ``_on_rollout_start``, or after ``learn`` returned), where the model and its environment agree.
+    Save what ``model.save`` and ``model.save_replay_buffer`` leave out: the random generators' states and the
+    environment's state. Call it between two rollouts (from a callback's ``_on_rollout_start``, or after ``learn``
+    returned), where the model and its environment agree.
 
     :param model: the model (any SB3 algorithm)
     :param path: the file to write (atomically)
@@ -133,11 +336,16 @@ def save_training_state(model: BaseAlgorithm, path: str | os.PathLike) -> bool:
     state = {
         "format": TRAINING_STATE_FORMAT,
         "num_timesteps": int(model.num_timesteps),
-        "rng": None if _zip_holds_rng_state(model) else capture_rng_state(model.action_space),
+        "rng": capture_rng_state(model.action_space),
         "env": env_state,
         "env_missing_because": reason,
     }
-    atomic_write(path, _dump_pickle(state))
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as file:
+            pickle.dump(state, file, protocol=pickle.HIGHEST_PROTOCOL)
+
+    atomic_write(path, write)
     return env_state is not None
 
 
@@ -145,6 +353,7 @@ def read_training_state(path: str | os.PathLike) -> dict[str, Any]:
     """
     :param path: a file written by :func:`save_training_state`
     :return: its content
+    :raises ValueError: for a truncated or corrupt file, or one of another format
     """
     try:
         with open(path, "rb") as file:
@@ -153,18 +362,20 @@ def read_training_state(path: str | os.PathLike) -> dict[str, Any]:
         raise
     except Exception as error:
         raise ValueError(f"could not read the training state {path}: truncated or corrupt ({error})") from error
-    if not isinstance(state, dict) or state.get("format") != TRAINING_STATE_FORMAT:
-        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+    found = state.get("format") if isinstance(state, dict) else type(state).__name__
+    if found != TRAINING_STATE_FORMAT:
         raise ValueError(
-            f"{path} is not a training state this sb3-soup reads (format {found!r}, expected {TRAINING_STATE_FORMAT})"
+            f"{path} is a training state of format {found!r}, written by another sb3-soup; this one reads format "
+            f"{TRAINING_STATE_FORMAT}: resume the checkpoint with the sb3-soup that wrote it, or load its model zip alone "
+            "(algo.load and load_replay_buffer: a faithful continuation, with new episodes and reseeded generators)"
         )
     return state
 
 
 def restore_training_state(model: BaseAlgorithm, state: dict[str, Any], path: Any = "training state") -> bool:
     """
-    Restore the random generators (when the training state holds them) and, when it was saved and the model kept its
-    last observation (``load(..., force_reset=False)``), the environment.
+    Restore the random generators and, when it was saved and the model kept its last observation
+    (``load(..., force_reset=False)``), the environment.
 
     :param model: the loaded model, with its environment
     :param state: from :func:`read_training_state`
@@ -176,8 +387,7 @@ def restore_training_state(model: BaseAlgorithm, state: dict[str, Any], path: An
             f"{path} was saved at step {state['num_timesteps']} but the model is at step {model.num_timesteps}: "
             "files from different checkpoints"
         )
-    if state["rng"] is not None:
-        restore_rng_state(state["rng"], model.action_space)
+    restore_rng_state(state["rng"], model.action_space)
     vec_env = model.get_env()
     if state["env"] is None or vec_env is None or model._last_obs is None:
         return False
@@ -185,76 +395,19 @@ def restore_training_state(model: BaseAlgorithm, state: dict[str, Any], path: An
     return True
 
 
-# ---------------------------------------------------------------- whole checkpoints
-
-
-def save_resumable(
-    model: BaseAlgorithm,
-    model_path: str | os.PathLike,
-    replay_buffer_path: str | os.PathLike | None = None,
-    training_state_path: str | os.PathLike | None = None,
-    vecnormalize_path: str | os.PathLike | None = None,
-) -> bool:
-    """
-    Save a checkpoint: each file written atomically, the model zip last (a checkpoint is found by its zip, so its
-    presence means the checkpoint is complete). Call it between two rollouts (see :func:`save_training_state`).
-
-    :param model: the model
-    :param model_path: its zip
-    :param replay_buffer_path: its replay buffer (off-policy models), or None
-    :param training_state_path: the environment (and the random generators, see :func:`save_training_state`), or None
-    :param vecnormalize_path: the ``VecNormalize`` statistics (when the env has them), or None
-    :return: whether the checkpoint holds the environment's state (an exact resume)
-    """
-    if replay_buffer_path is not None and isinstance(model, OffPolicyAlgorithm) and model.replay_buffer is not None:
-        atomic_write(replay_buffer_path, model.save_replay_buffer)
-    vec_normalize = model.get_vec_normalize_env()
-    if vecnormalize_path is not None and vec_normalize is not None:
-        atomic_write(vecnormalize_path, lambda path: vec_normalize.save(str(path)))
-    exact = training_state_path is not None and save_training_state(model, training_state_path)
-    atomic_write(model_path, model.save)
-    return exact
-
-
-def load_resumable(
-    algo_class: type[BaseAlgorithm],
-    model_path: str | os.PathLike,
-    env: GymEnv | None,
-    replay_buffer_path: str | os.PathLike | None = None,
-    training_state_path: str | os.PathLike | None = None,
-    **load_kwargs: Any,
-) -> BaseAlgorithm:
-    """
-    Load a checkpoint saved by :func:`save_resumable`: the model, its replay buffer, the random generators and the
-    environment's state. Continue with ``model.learn(remaining, reset_num_timesteps=False)``.
-
-    :param algo_class: the model's class (``SOUP``, ``TD3``...)
-    :param model_path: the model zip
-    :param env: an environment built as the saved one (its state is overwritten with the saved state)
-    :param replay_buffer_path: the replay buffer, or None
-    :param training_state_path: the training state, or None (then the environment is reset, as SB3 does)
-    :param load_kwargs: passed to ``algo_class.load`` (``device``, ``custom_objects``...)
-    :return: the model
-    """
-    state = read_training_state(training_state_path) if training_state_path is not None else None
-    exact = state is not None and state["env"] is not None and env is not None
-    model = algo_class.load(Path(model_path), env=env, force_reset=not exact, **load_kwargs)
-    if replay_buffer_path is not None and isinstance(model, OffPolicyAlgorithm):
-        model.load_replay_buffer(Path(replay_buffer_path))
-    if state is not None:
-        restore_training_state(model, state, training_state_path)
-    return model
+# ---------------------------------------------------------------- checkpoints
 
 
 @dataclasses.dataclass(frozen=True)
 class CheckpointFiles:
     """
-    The files of one checkpoint in a folder written by SB3's ``CheckpointCallback`` or :class:`ResumableCheckpointCallback`.
+    The files of one checkpoint, e.g. in a folder written by SB3's ``CheckpointCallback`` or
+    :class:`ResumableCheckpointCallback` (:func:`find_checkpoints`).
 
     :param step: ``num_timesteps`` when it was saved
     :param model: the model zip
     :param replay_buffer: the replay buffer, if saved
-    :param training_state: the training state (environment, random generators), if saved
+    :param training_state: the training state (random generators, environment), if saved
     :param vecnormalize: the ``VecNormalize`` statistics, if saved
     """
 
@@ -311,14 +464,6 @@ def _complete_pickle(path: Path) -> bool:
         return False
 
 
-def _complete_zip(path: Path) -> bool:
-    try:
-        with zipfile.ZipFile(path) as archive:
-            return "data" in archive.namelist() and archive.testzip() is None
-    except (zipfile.BadZipFile, OSError, EOFError):
-        return False
-
-
 def is_complete(checkpoint: CheckpointFiles) -> bool:
     """
     Whether every file of a checkpoint is whole: for SB3's ``CheckpointCallback``, which writes in place, a kill while
@@ -326,7 +471,9 @@ def is_complete(checkpoint: CheckpointFiles) -> bool:
 
     :param checkpoint: from :func:`find_checkpoints`
     """
-    if not _complete_zip(checkpoint.model):
+    try:
+        read_model_data(checkpoint.model)
+    except (ValueError, OSError):
         return False
     return all(_complete_pickle(path) for path in (checkpoint.replay_buffer, checkpoint.training_state) if path is not None)
 
@@ -348,28 +495,6 @@ def latest_checkpoint(
     return None
 
 
-def load_checkpoint(
-    checkpoint: CheckpointFiles, env: GymEnv | None, algo_class: type[BaseAlgorithm] | None = None, **load_kwargs: Any
-) -> BaseAlgorithm:
-    """
-    Load a checkpoint (see :func:`load_resumable`); continue with ``learn(remaining, reset_num_timesteps=False)``.
-    From SB3's ``CheckpointCallback`` (no training state) the environment is reset (a faithful continuation).
-
-    :param checkpoint: from :func:`latest_checkpoint`
-    :param env: an environment built as the saved one
-    :param algo_class: the model's class (default: SOUP)
-    :param load_kwargs: passed to ``algo_class.load``
-    :return: the model
-    """
-    if algo_class is None:
-        algo_class = SOUP
-    if checkpoint.vecnormalize is not None and isinstance(env, VecEnv) and unwrap_vec_normalize(env) is None:
-        env = VecNormalize.load(str(checkpoint.vecnormalize), env)
-    return load_resumable(
-        algo_class, checkpoint.model, env, checkpoint.replay_buffer, checkpoint.training_state, **load_kwargs
-    )
-
-
 def save_checkpoint(
     model: BaseAlgorithm,
     save_path: str | os.PathLike,
@@ -380,32 +505,71 @@ def save_checkpoint(
 ) -> CheckpointFiles:
     """
     Save a checkpoint now, as :class:`ResumableCheckpointCallback` does every ``save_freq`` steps (same files, see
-    :func:`save_resumable`), then delete the older ones beyond ``keep_last``. Call it between two rollouts (e.g. after
-    ``learn`` returned or :class:`StopTraining` stopped it).
+    :mod:`sb3_soup.checkpoint`), each file atomically and the model zip last, then delete the older ones beyond
+    ``keep_last``. Call it between two rollouts (e.g. after ``learn`` returned or :class:`StopTraining` stopped it).
 
     :param model: the model
     :param save_path: the checkpoint folder
     :param name_prefix: common prefix of the files
-    :param save_replay_buffer: save the replay buffer too (needed to resume)
-    :param save_vecnormalize: save the ``VecNormalize`` statistics too, as SB3 does
+    :param save_replay_buffer: save the replay buffer too (off-policy models; needed to resume)
+    :param save_vecnormalize: save the ``VecNormalize`` statistics too (when the env has them), as SB3 does
     :param keep_last: keep only the newest ``keep_last`` checkpoints (None: keep all)
     :return: the checkpoint's files
     """
     step = int(model.num_timesteps)
     root = Path(save_path)
+    has_buffer = isinstance(model, OffPolicyAlgorithm) and model.replay_buffer is not None
+    vec_normalize = model.get_vec_normalize_env()
+    training_state = _file(root, name_prefix, "training_state_", step, "pkl")
     files = CheckpointFiles(
         step,
         _file(root, name_prefix, "", step, "zip"),
-        _file(root, name_prefix, "replay_buffer_", step, "pkl") if save_replay_buffer else None,
-        _file(root, name_prefix, "training_state_", step, "pkl"),
-        _file(root, name_prefix, "vecnormalize_", step, "pkl") if save_vecnormalize else None,
+        _file(root, name_prefix, "replay_buffer_", step, "pkl") if save_replay_buffer and has_buffer else None,
+        training_state,
+        _file(root, name_prefix, "vecnormalize_", step, "pkl") if save_vecnormalize and vec_normalize else None,
     )
-    save_resumable(model, files.model, files.replay_buffer, files.training_state, files.vecnormalize)
+    if files.replay_buffer is not None:
+        atomic_write(files.replay_buffer, model.save_replay_buffer)  # type: ignore[attr-defined]
+    if files.vecnormalize is not None:
+        atomic_write(files.vecnormalize, lambda path: vec_normalize.save(str(path)))  # type: ignore[union-attr]
+    save_training_state(model, training_state)
+    atomic_write(files.model, model.save)  # last: the checkpoint is there once its zip is
     if keep_last is not None:
         for old in find_checkpoints(root, name_prefix)[keep_last:]:
             for path in old.paths:  # the zip first: the checkpoint is gone at once
                 path.unlink(missing_ok=True)
     return files
+
+
+def load_checkpoint(
+    checkpoint: CheckpointFiles, env: GymEnv | None, algo_class: type[BaseAlgorithm] | None = None, **load_kwargs: Any
+) -> BaseAlgorithm:
+    """
+    Load a checkpoint: the model, its replay buffer, the random generators and the environment's state; continue with
+    ``learn(remaining, reset_num_timesteps=False)``. From SB3's ``CheckpointCallback`` (no training state) the
+    environment is reset and the generators reseeded, as SB3's ``load`` does (a faithful continuation).
+
+    :param checkpoint: from :func:`latest_checkpoint` (or built with the paths of its files)
+    :param env: an environment built as the saved one (its state is overwritten with the saved state)
+    :param algo_class: the model's class (default: SOUP)
+    :param load_kwargs: passed to ``algo_class.load`` (``device``, ``custom_objects``...)
+    :return: the model
+    """
+    if algo_class is None:
+        from sb3_soup.soup import SOUP  # sb3_soup.soup imports this module
+
+        algo_class = SOUP
+    if checkpoint.vecnormalize is not None and isinstance(env, VecEnv) and unwrap_vec_normalize(env) is None:
+        env = VecNormalize.load(str(checkpoint.vecnormalize), env)
+    path = checkpoint.training_state
+    state = read_training_state(path) if path is not None else None
+    exact = state is not None and state["env"] is not None and env is not None
+    model = algo_class.load(checkpoint.model, env=env, force_reset=not exact, **load_kwargs)
+    if checkpoint.replay_buffer is not None and isinstance(model, OffPolicyAlgorithm):
+        model.load_replay_buffer(checkpoint.replay_buffer)
+    if state is not None:
+        restore_training_state(model, state, path)
+    return model
 
 
 def _remove_leftovers(save_path: Path, name_prefix: str) -> None:

@@ -2,8 +2,6 @@
 
 import io
 import pathlib
-import warnings
-from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -29,19 +27,21 @@ from sb3_soup.buffers import (
     BootstrappedReplayBufferSamples,
     bootstrapped_buffer_class,
 )
+from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
 from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.losses import actor_loss, critic_loss, td_target
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
-from sb3_soup.persistence import capture_rng_state, restore_rng_state
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.saving import SAVE_FORMAT_VERSION, check_saved_format, package_version, read_saved_data, upgrade
 from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
-__version__ = package_version()
+__version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip()
+SAVE_FORMAT_VERSION = 2
+"""Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
+parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
 # Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
@@ -281,7 +281,7 @@ class SOUP(OffPolicyAlgorithm):
         self.noise_std_min: float = args["noise_std_min"]
         self.check_finite: bool = args["check_finite"]
         self.current_noise_std = self.noise_std
-        # Saved with the model: which sb3-soup wrote it, in which save format (see sb3_soup.saving)
+        # Saved with the model: which sb3-soup wrote it, in which save format (checked by SOUP.load)
         self._sb3_soup_format = SAVE_FORMAT_VERSION
         self._sb3_soup_version = __version__
 
@@ -592,27 +592,7 @@ class SOUP(OffPolicyAlgorithm):
             progress_bar=progress_bar,
         )
 
-    # ----- saving -----------------------------------------------------------------------------------------------
-
-    def save(
-        self,
-        path: str | pathlib.Path | io.BufferedIOBase,
-        exclude: Iterable[str] | None = None,
-        include: Iterable[str] | None = None,
-    ) -> None:
-        """
-        Save all the attributes of the object and the model parameters in a zip-file, as SB3 does, plus the
-        sb3-soup version and save format, and the random generators' states (restored by :meth:`load`).
-
-        :param path: path to the file where the model should be saved
-        :param exclude: name of parameters that should be excluded in addition to the default ones
-        :param include: name of parameters that might be excluded but should be included anyway
-        """
-        self._rng_state = capture_rng_state(self.action_space)
-        try:
-            super().save(path, exclude, include)
-        finally:
-            del self._rng_state
+    # ----- saving: SB3's save and load, with SOUP's checks -----------------------------------------------------
 
     @classmethod
     def load(  # type: ignore[override]
@@ -626,10 +606,9 @@ class SOUP(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfSOUP:
         """
-        Load a model saved by :meth:`save` as it was saved (its head counts, preset, strategy and settings), after
-        checking that the file is a complete SOUP model in a save format this version reads (see
-        :mod:`sb3_soup.saving`). The random generators are put back in their state at save time (SB3 would reseed them
-        with the model's seed), so that ``learn(..., reset_num_timesteps=False)`` continues the same random streams.
+        SB3's ``load``, after checking that the file is a complete SOUP model in this version's save format: the model
+        as it was saved (its head counts, preset, strategy and settings), with the random generators seeded with its
+        seed, as SB3 does (:mod:`sb3_soup.checkpoint` resumes a run exactly).
 
         :param path: path to the file (or a file-like) where to load the agent from
         :param env: the new environment to run the loaded model on (None: prediction only)
@@ -642,8 +621,8 @@ class SOUP(OffPolicyAlgorithm):
             the strategy (head counts, preset, confidence and its parameters) are fixed by the file
         :return: the model
         """
-        data = read_saved_data(path)
-        saved_format = check_saved_format(data, path)
+        data = read_model_data(path)
+        cls._check_saved_data(data, path)
         fixed = sorted(set(kwargs) & set(_STRUCTURAL_ARGUMENTS))
         if fixed:
             raise ValueError(
@@ -652,27 +631,31 @@ class SOUP(OffPolicyAlgorithm):
                 + "; create a new SOUP to use other values"
             )
         kwargs = check_arguments(**kwargs)
-        try:
-            model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
-        except ValueError as error:
-            if "wasn't a zip-file" not in str(error):
-                raise
-            raise ValueError(f"{path} is a corrupt model zip ({error.__cause__}): load an earlier checkpoint") from error
-        rng_state = model.__dict__.pop("_rng_state", None)
-        if rng_state is not None:
-            restore_rng_state(rng_state, model.action_space)
-        elif saved_format == 0:
-            warnings.warn(
-                f"{path} was saved by sb3-soup 0.1.0a0 before the save format was stored: loaded as saved, but without the "
-                "random generators' state (they are reseeded with the model's seed, as SB3 does)",
-                UserWarning,
-                stacklevel=2,
-            )
-        upgrade(model, saved_format)
-        # From now on it is this version's model (and saved in this version's format)
-        model._sb3_soup_format = SAVE_FORMAT_VERSION
-        model._sb3_soup_version = __version__
+        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        model._sb3_soup_version = __version__  # from now on this version's model
         return model
+
+    @staticmethod
+    def _check_saved_data(data: dict[str, Any], path: Any) -> None:
+        """Refuse a file that is not a SOUP model in this version's save format, saying which versions and what to do."""
+        saved_format = data.get("_sb3_soup_format", 0)  # 0: sb3-soup 0.1.0a0 before the format was stored
+        if saved_format == 0 and not {"n_actor_heads", "n_critic_heads"} <= data.keys():
+            policy = data.get("policy_class")
+            module = policy.get("__module__", "?") if isinstance(policy, dict) else "?"
+            raise ValueError(
+                f"{path} was not saved by SOUP (its policy class comes from {module}): load it with the algorithm that "
+                "saved it (e.g. stable_baselines3.TD3.load)"
+            )
+        if saved_format != SAVE_FORMAT_VERSION:
+            saved_version = data.get("_sb3_soup_version", "0.1.0a0")
+            if isinstance(saved_format, int) and saved_format > SAVE_FORMAT_VERSION:
+                advice = "upgrade sb3-soup (pip install -U sb3-soup) to load it"
+            else:
+                advice = f"load it with sb3-soup {saved_version} (pip install sb3-soup=={saved_version}), or train a new model"
+            raise ValueError(
+                f"{path} was saved by sb3-soup {saved_version} in save format {saved_format!r}; this sb3-soup {__version__} "
+                f"reads save format {SAVE_FORMAT_VERSION} only: {advice}"
+            )
 
     def set_parameters(
         self,

@@ -1,5 +1,6 @@
-"""Loading: files that are not models, truncated or corrupt ones, other K or presets, other sb3-soup versions, buffers."""
+"""Loading: files that are not models, truncated or corrupt ones, other K or presets, other save formats, buffers."""
 
+import copy
 import json
 import pickle
 import random
@@ -13,10 +14,10 @@ import pytest
 import torch as th
 from stable_baselines3 import TD3
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import set_random_seed
 
-import sb3_soup.saving
 from sb3_soup import SOUP, __version__
-from sb3_soup.saving import SAVE_FORMAT_VERSION
+from sb3_soup.soup import SAVE_FORMAT_VERSION
 
 TINY = dict(net_arch=dict(pi_body=[8], pi_head=[8], qf_body=[8, 8], qf_head=[8]))
 SMALL = dict(learning_starts=20, batch_size=16, buffer_size=300, policy_kwargs=TINY)
@@ -94,48 +95,43 @@ def test_truncated_and_corrupt_zips(saved, tmp_path):
 # ---------------------------------------------------------------- versions
 
 
-def test_the_version_and_save_format_are_stored(saved):
+def test_the_version_and_save_format_are_stored_and_no_random_generators(saved):
     with zipfile.ZipFile(saved / "model.zip") as archive:
         data = json.loads(archive.read("data"))
     assert data["_sb3_soup_format"] == SAVE_FORMAT_VERSION and data["_sb3_soup_version"] == __version__
-    assert "_rng_state" in data
+    assert "_rng_state" not in data  # a checkpoint's training state holds them (sb3_soup.checkpoint)
 
 
-def test_newer_and_older_save_formats_are_refused(saved, tmp_path, monkeypatch):
+def test_newer_save_formats_are_refused(saved, tmp_path):
     def newer(data):
         data.update(_sb3_soup_format=SAVE_FORMAT_VERSION + 1, _sb3_soup_version="9.0.0")
 
     future = _rewrite(saved / "model.zip", tmp_path / "future.zip", newer)
-    with pytest.raises(
-        ValueError, match=rf"saved by sb3-soup 9\.0\.0 in save format {SAVE_FORMAT_VERSION + 1}; this .* upgrade"
-    ):
+    message = (
+        f"future.zip was saved by sb3-soup 9.0.0 in save format {SAVE_FORMAT_VERSION + 1}; this sb3-soup {__version__} "
+        f"reads save format {SAVE_FORMAT_VERSION} only: upgrade sb3-soup (pip install -U sb3-soup) to load it"
+    )
+    with pytest.raises(ValueError, match=re.escape(message)):
         SOUP.load(future)
 
-    def before_formats(data):
-        for key in ("_sb3_soup_format", "_sb3_soup_version", "_rng_state"):
-            del data[key]
 
-    old = _rewrite(saved / "model.zip", tmp_path / "old.zip", before_formats)
-    # today format 0 (0.1.0a0 before formats were stored) is read, with a warning about the random generators...
-    with pytest.warns(UserWarning, match="saved by sb3-soup 0.1.0a0 before the save format was stored"):
-        loaded = SOUP.load(old)
-    assert loaded.n_heads == 3 and loaded._sb3_soup_format == SAVE_FORMAT_VERSION
-    # ... and the day a version stops reading it, the message says which version to use
-    monkeypatch.setattr(sb3_soup.saving, "MIN_READABLE_FORMAT", 1)
-    with pytest.raises(ValueError, match=r"saved by sb3-soup 0\.1\.0a0 in save format 0, which this sb3-soup .* no longer"):
+@pytest.mark.parametrize("saved_format", [0, 1])
+def test_older_save_formats_are_refused(saved, tmp_path, saved_format):
+    """0.1.0a0's files: format 0 (before the format was stored) and format 1 (other attribute names) are not read."""
+
+    def older(data):
+        del data["_sb3_soup_format"], data["_sb3_soup_version"]  # format 0: not stored
+        if saved_format == 1:
+            data.update(_sb3_soup_format=1, _sb3_soup_version="0.1.0a0")
+
+    old = _rewrite(saved / "model.zip", tmp_path / "old.zip", older)
+    message = (
+        f"old.zip was saved by sb3-soup 0.1.0a0 in save format {saved_format}; this sb3-soup {__version__} reads save "
+        f"format {SAVE_FORMAT_VERSION} only: load it with sb3-soup 0.1.0a0 (pip install sb3-soup==0.1.0a0), or train a "
+        "new model"
+    )
+    with pytest.raises(ValueError, match=re.escape(message)):
         SOUP.load(old)
-
-
-def test_format_1_files_load_under_this_versions_attribute_names(saved, tmp_path):
-    def format_1(data):
-        data.update(_sb3_soup_format=1, _sb3_soup_version="0.1.0a0")
-        data["_active_heads"] = data.pop("_active_pairs")
-        data["exploration_std"] = data.pop("current_noise_std")
-
-    loaded = SOUP.load(_rewrite(saved / "model.zip", tmp_path / "format_1.zip", format_1))
-    assert "_active_heads" not in vars(loaded)  # a checkpoint resumes with its episodes' head pairs
-    assert np.array_equal(loaded._active_pairs, SOUP.load(saved / "model.zip")._active_pairs)
-    assert "exploration_std" not in vars(loaded) and loaded.current_noise_std > 0
 
 
 # ---------------------------------------------------------------- another K, another preset: loaded as saved
@@ -173,15 +169,17 @@ def test_load_refuses_to_change_the_structure_and_checks_other_settings(saved):
     assert loaded.learning_starts == 5 and type(loaded.learning_starts) is int and loaded.train_heads == "all"
 
 
-def test_load_restores_the_random_generators(saved, tmp_path):
+def test_load_seeds_the_random_generators_as_sb3_does(saved):
+    """The model zip holds no random-generator state: SOUP.load, as SB3's, seeds the generators with the model's seed."""
+    np.random.seed(123)  # whatever happened before
+    random.seed(123)
     model = SOUP.load(saved / "model.zip")
-    model.save(tmp_path / "again")
-    after_save = (np.random.random(3), th.rand(3), random.random(), model.action_space.sample())
-    np.random.seed(123)  # anything in between...
-    loaded = SOUP.load(tmp_path / "again")  # ...and SB3's load would reseed with the model's seed
-    assert np.array_equal(np.random.random(3), after_save[0])
-    assert th.equal(th.rand(3), after_save[1]) and random.random() == after_save[2]
-    assert np.array_equal(loaded.action_space.sample(), after_save[3])
+    after_load = (np.random.random(3), random.random(), model.action_space.sample())
+    space = copy.deepcopy(model.action_space)
+    set_random_seed(model.seed)
+    space.seed(model.seed)
+    assert model.seed == 0 and np.array_equal(np.random.random(3), after_load[0]) and random.random() == after_load[1]
+    assert np.array_equal(space.sample(), after_load[2])
 
 
 # ---------------------------------------------------------------- replay buffers

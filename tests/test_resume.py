@@ -3,6 +3,7 @@
 import copy
 import dataclasses
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -22,15 +23,18 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_soup import SOUP
 from sb3_soup.checkpoint import (
+    TRAINING_STATE_FORMAT,
+    EnvStateError,
     ResumableCheckpointCallback,
     find_checkpoints,
+    get_env_state,
     latest_checkpoint,
     load_checkpoint,
     read_training_state,
     save_checkpoint,
     save_training_state,
+    set_env_state,
 )
-from sb3_soup.persistence import EnvStateError, get_env_state, set_env_state
 
 SCRIPT = Path(__file__).with_name("resume_run.py")
 
@@ -171,7 +175,7 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
     assert [checkpoint.step for checkpoint in find_checkpoints(tmp_path)] == [240, 160]  # every 40 * 2 steps, last 2 kept
     checkpoint = next(checkpoint for checkpoint in find_checkpoints(tmp_path) if checkpoint.step == resume_at)
 
-    assert read_training_state(checkpoint.training_state)["rng"] is None  # SOUP's zip holds the random generators
+    assert read_training_state(checkpoint.training_state)["rng"] is not None  # the random generators: there only
 
     resumed = load_checkpoint(checkpoint, new_env())
     _assert_same(_state(resumed), recorded.snapshot)
@@ -181,17 +185,16 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
     assert np.array_equal(np.concatenate(continued.actions), np.concatenate(recorded.actions[resume_at // 2 :]))
     assert th.equal(_params(resumed), _params(reference))
 
-    # The same model and buffer files loaded as SB3 does (env reset, generators reseeded): not the same run.
+    # The same model and buffer files loaded as SB3 does (SOUP.load resets the env, seeds the generators): another run.
     sb3_way = SOUP.load(checkpoint.model, env=new_env())
     sb3_way.load_replay_buffer(checkpoint.replay_buffer)
-    sb3_way.set_random_seed(kwargs["seed"])
     other = Recorder()
     sb3_way.learn(total - resume_at, callback=other, reset_num_timesteps=False)
     assert not np.array_equal(np.concatenate(other.actions), np.concatenate(continued.actions))
 
 
 def test_other_algorithms_resume_exactly_too(tmp_path):
-    """TD3's zip holds no random generators: its checkpoints keep them in the training state."""
+    """The checkpoints are the algorithm's own files plus the training state: TD3 resumes exactly too."""
 
     def new_model():
         env = DummyVecEnv([lambda: gym.make("Pendulum-v1")])
@@ -215,20 +218,24 @@ def test_other_algorithms_resume_exactly_too(tmp_path):
     assert th.equal(_params(resumed), _params(reference))
 
 
-def test_save_after_learn_then_load_with_the_live_env_continues_exactly(tmp_path):
-    """Without the checkpoint helpers: model.save after learn() and SOUP.load(..., force_reset=False) on the same env."""
+def test_save_checkpoint_after_learn_continues_exactly_and_save_load_do_not(tmp_path):
+    """save_checkpoint after learn() returned resumes exactly; SOUP.save and SOUP.load are SB3's (generators reseeded)."""
     kwargs = dict(n_heads=2, learning_starts=30, batch_size=16, buffer_size=500, policy_kwargs=TINY, seed=2)
     reference = SOUP("MlpPolicy", "Pendulum-v1", **kwargs)
     reference.learn(200)
     interrupted = SOUP("MlpPolicy", "Pendulum-v1", **kwargs)
     interrupted.learn(120)
-    interrupted.save(tmp_path / "model")
-    interrupted.save_replay_buffer(tmp_path / "buffer")
+    files = save_checkpoint(interrupted, tmp_path)
     np.random.seed(0)  # whatever happens in between
-    loaded = SOUP.load(tmp_path / "model", env=interrupted.get_env(), force_reset=False)
-    loaded.load_replay_buffer(tmp_path / "buffer")
+    resumed = load_checkpoint(files, gym.make("Pendulum-v1"))
+    resumed.learn(80, reset_num_timesteps=False)
+    assert th.equal(_params(resumed), _params(reference))
+
+    # the same files, the same live env (not reset): the generators seeded by SOUP.load make another run
+    loaded = SOUP.load(files.model, env=interrupted.get_env(), force_reset=False)
+    loaded.load_replay_buffer(files.replay_buffer)
     loaded.learn(80, reset_num_timesteps=False)
-    assert th.equal(_params(loaded), _params(reference))
+    assert not th.equal(_params(loaded), _params(reference))
 
 
 # ---------------------------------------------------------------- the pieces
@@ -292,6 +299,17 @@ def test_env_states_that_cannot_be_restored_are_refused_or_left_out():
 
     with pytest.raises(EnvStateError, match="does not pickle"):
         get_env_state(DummyVecEnv([lambda: NotPicklable(gym.make("Pendulum-v1"))]))
+
+
+def test_a_training_state_of_another_format_is_refused(tmp_path):
+    path = tmp_path / "state.pkl"
+    save_training_state(SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, buffer_size=100, policy_kwargs=TINY), path)
+    state = read_training_state(path)
+    assert state["format"] == TRAINING_STATE_FORMAT == 3 and state["rng"] is not None
+    state["format"] = 2  # 0.2.0a0 before the random generators left SOUP's model zip
+    path.write_bytes(pickle.dumps(state))
+    with pytest.raises(ValueError, match=r"state\.pkl is a training state of format 2, written by another sb3-soup; this one"):
+        read_training_state(path)
 
 
 def test_a_checkpoint_saved_mid_step_leaves_the_env_out(tmp_path):

@@ -16,7 +16,7 @@ import pandas as pd
 from stable_baselines3.common.logger import CSVOutputFormat, Logger
 from stable_baselines3.common.monitor import Monitor
 
-from sb3_soup.persistence import atomic_write
+from sb3_soup.checkpoint import atomic_write
 
 MONITOR_FILE = "monitor.csv"
 PROGRESS_FILE = "progress.csv"

@@ -50,12 +50,12 @@ STOP_REQUESTED = threading.Event()
 
 def write_json(path: str | os.PathLike, data: dict[str, Any]) -> None:
     """
-    Write JSON atomically (:func:`sb3_soup.persistence.atomic_write`), so readers never see half a file.
+    Write JSON atomically (:func:`sb3_soup.checkpoint.atomic_write`), so readers never see half a file.
 
     :param path: the file
     :param data: the data
     """
-    from sb3_soup.persistence import atomic_write  # it brings torch and SB3: imported when needed (see the module doc)
+    from sb3_soup.checkpoint import atomic_write  # it brings torch and SB3: imported when needed (see the module doc)
 
     text = json.dumps(data, indent=2, sort_keys=True, default=str)
     atomic_write(path, lambda tmp: tmp.write_text(text))
