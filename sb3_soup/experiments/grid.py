@@ -420,7 +420,7 @@ def zoo_hyperparams(algo: str, env_id: str) -> dict[str, Any]:
         (the runner makes it ``NormalActionNoise``; TD3 and DDPG without one get ``noise_std`` 0)
     """
     # Found, not imported: importing rl_zoo3 replaces gymnasium's TimeLimit for the whole process (rl_zoo3.gym_patches),
-    # and an env made afterwards no longer matches the state of one made before (sb3_soup.persistence.set_env_state)
+    # and an env made afterwards no longer matches the state of one made before (sb3_soup.checkpoint.set_env_state)
     package = importlib.util.find_spec("rl_zoo3")
     if package is None or package.origin is None:
         raise ImportError("the RL Zoo's hyper-parameters need rl_zoo3: pip install rl-zoo3")
