@@ -1,14 +1,30 @@
 """
 The golden runs: every preset with both training schemes and every confidence strategy, a few hundred steps on
 Pendulum-v1 with fixed seeds and every setting given explicitly (so that a change of defaults cannot move them).
-``python tests/golden.py`` records their actions and parameter checksums in ``tests/data/golden.json``;
-``tests/test_golden.py`` replays them. They were recorded before the redesign of the core (issue 13) and must stay
-the same: a change that alters them is named and justified in its commit, and the file re-recorded.
+They were recorded before the redesign of the core (issue 13) and must stay the same: a change that alters them is
+named and justified in its commit, and the file re-recorded. ``tests/test_golden.py`` replays them.
+
+What a run records (:func:`run_case`): the actions it took, the bootstrap masks it drew, the head the ensemble chose
+at every step after the warm-up and by how much its E-Q value beat the runner-up, every value that ``train`` logs
+(the losses of every update, ...) and how far training moved each network. Not the bits of the parameters: another
+CPU, another thread count or another torch rounds differently, and training amplifies that (issue 21), so the test
+compares at tolerances measured across such settings (see ``tests/test_golden.py``).
+
+Record (all cases, or the ones named)::
+
+    python tests/golden.py [CASE ...]
+
+Measure how far a setting moves the runs from the recorded ones, e.g. another CPU's kernels or two threads::
+
+    ATEN_CPU_CAPABILITY=default python tests/golden.py --compare
+    MKL_CBWR=COMPATIBLE python tests/golden.py --compare --threads 2
 """
 
-import hashlib
+import argparse
 import json
 import sys
+from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +63,7 @@ SETTINGS: dict[str, Any] = dict(
     confidence_baseline=True,
     policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
 )
+WARMUP = SETTINGS["learning_starts"]  # the first steps act at random: no network is involved
 CASES: dict[str, dict[str, Any]] = {
     **{
         f"{preset}-{scheme}": dict(preset=preset, train_heads=scheme)
@@ -56,36 +73,186 @@ CASES: dict[str, dict[str, Any]] = {
     "fixed-active": dict(confidence="fixed", train_heads="active"),
     "decayed-active": dict(confidence="decayed", train_heads="active"),
 }
+ACTION_BOUND = 2.0  # Pendulum-v1's largest torque: the scale of its actions
 
 
-class _Actions(BaseCallback):
+class _Recorder(BaseCallback):
+    """The actions taken and, after the warm-up, what the ensemble chose them from (with more than one actor head)."""
+
     def __init__(self) -> None:
         super().__init__()
         self.actions: list[np.ndarray] = []
+        self.chosen: list[int] = []
+        self.e_q: list[list[float]] = []
+        self.candidates: list[list[float]] = []
 
     def _on_step(self) -> bool:
         self.actions.append(np.array(self.locals["actions"], dtype=np.float64).copy())
+        step = self.model.num_timesteps - 1  # the env step just taken, from self.model._last_obs
+        if step >= WARMUP and self.model.policy.n_actor_heads > 1:
+            view = self.model.policy.ensemble_view(self.model._last_obs, explore=True)  # what the step acted on
+            self.chosen.append(int(view.chosen[0]))
+            self.e_q.append(view.e_q[0].astype(np.float64).tolist())
+            self.candidates.append(view.candidates[0].astype(np.float64).ravel().tolist())
         return True
 
 
-def run_case(name: str) -> dict[str, Any]:
-    """Train one case and return its actions and the checksum of its parameters."""
-    th.set_num_threads(1)
+def _parts(model: SOUP) -> dict[str, th.Tensor]:
+    """
+    The policy's floating-point parameters and buffers in parts, flattened in float64: each network's shared part
+    (``actor.body``, ...), each of its heads (``critic.head1``: the head's slice of the batched head layers) and the
+    confidence strategy (``confidence``).
+    """
+    parts: dict[str, list[th.Tensor]] = defaultdict(list)
+    for key, value in model.policy.state_dict().items():
+        if not value.is_floating_point():
+            continue
+        network = key.split(".")[0]
+        value = value.detach().double()
+        if network != "confidence" and ".heads." in key:  # (K, in, out) weights and (K, 1, out) biases
+            for head, rows in enumerate(value):
+                parts[f"{network}.head{head}"].append(rows.flatten())
+        else:
+            parts[network if network == "confidence" else f"{network}.body"].append(value.flatten())
+    return {name: th.cat(values) for name, values in parts.items()}
+
+
+def run_case(name: str, steps: int = STEPS, threads: int = 1) -> dict[str, Any]:
+    """
+    Train one case and return what it did.
+
+    :param name: a key of :data:`CASES`
+    :param steps: env steps to train
+    :param threads: torch's intra-op threads (the recording and the test use 1; more to measure their effect)
+    :return: ``actions`` (every env step's), ``masks`` (each transition's bootstrap mask, as a string of 0/1),
+        ``chosen``, ``e_q`` and ``candidates`` (for each step after the warm-up, with several actor heads: the head
+        whose action was taken, each candidate's E-Q value and each candidate's action before the noise), ``updates``
+        (each value ``train`` logs, a list over the updates: update ``t`` follows step ``WARMUP + t``) and ``moved``
+        (for each part of :func:`_parts`, ``sum |theta - theta_0|`` over the run)
+    """
+    th.set_num_threads(threads)
     model = SOUP("MlpPolicy", "Pendulum-v1", seed=0, device="cpu", **SETTINGS, **CASES[name])
-    recorder = _Actions()
-    model.learn(STEPS, callback=recorder)
-    parameters = th.cat([p.detach().double().flatten() for p in model.policy.state_dict().values() if p.is_floating_point()])
+    initial = _parts(model)
+    updates: dict[str, list[float]] = defaultdict(list)
+    train = model.train
+
+    def recording_train(gradient_steps: int, batch_size: int = 64) -> None:
+        train(gradient_steps, batch_size)
+        logged = model.logger.name_to_value
+        for key in [key for key in logged if key.startswith("train/")]:  # taken out: the next update logs its own
+            updates[key.removeprefix("train/")].append(float(logged.pop(key)))
+
+    model.train = recording_train  # type: ignore[method-assign]
+    recorder = _Recorder()
+    model.learn(steps, callback=recorder)
+    final = _parts(model)
+    masks = model.replay_buffer.masks[: model.replay_buffer.size(), 0]  # type: ignore[union-attr]
     return {
         "actions": np.concatenate(recorder.actions).ravel().tolist(),
-        "parameter_sum": float(parameters.sum()),
-        "parameter_abs_sum": float(parameters.abs().sum()),
-        "parameter_sha256": hashlib.sha256(parameters.numpy().tobytes()).hexdigest(),
+        "masks": ["".join(str(int(bit)) for bit in row) for row in masks],
+        "chosen": recorder.chosen,
+        "e_q": recorder.e_q,
+        "candidates": recorder.candidates,
+        "updates": dict(updates),
+        "moved": {part: float((final[part] - initial[part]).abs().sum()) for part in final},
     }
 
 
-if __name__ == "__main__":
-    cases = sys.argv[1:] or list(CASES)
+def horizon(record: dict[str, Any], tolerance: Callable[[int], float]) -> int:
+    """
+    How many steps after the warm-up another machine takes the recorded actions, given that its values may differ
+    from the recorded ones by ``tolerance(t)`` at step ``t`` (relative to their scale): up to the first step whose
+    choice such differences could change, that is where the chosen candidate's E-Q value leads another's by at most
+    ``2 * tolerance(t)`` (both may move, in opposite directions) and the other's action differs by more than
+    ``tolerance(t)``. From there on the runs may part (a tie between candidates of the same action is no such step).
+
+    :param record: a run of :func:`run_case`
+    :param tolerance: the relative tolerance at each step after the warm-up
+    :return: the number of steps after the warm-up (and updates) that can be compared
+    """
+    for t, (chosen, e_q, candidates) in enumerate(zip(record["chosen"], record["e_q"], record["candidates"])):
+        e_q, tol = np.asarray(e_q), tolerance(t)
+        candidates = np.asarray(candidates).reshape(len(e_q), -1)  # (Ka, A)
+        close = e_q[chosen] - e_q <= 2 * tol * np.abs(e_q).max()
+        apart = np.abs(candidates - candidates[chosen]).max(axis=1) > tol * ACTION_BOUND
+        if (close & apart).any():
+            return t
+    return len(record["actions"]) - WARMUP
+
+
+def deviation(got: dict[str, Any], expected: dict[str, Any], quantity: str, steps: slice) -> float:
+    """
+    The largest difference of one quantity between two runs over some steps after the warm-up, relative to its scale.
+
+    :param quantity: ``"actions"`` and ``"candidates"`` (relative to :data:`ACTION_BOUND`), ``"e_q"`` (to each step's
+        largest E-Q value), or ``"updates/KEY"`` (a value ``train`` logs, relative to its largest recorded value)
+    :param steps: the steps after the warm-up (or the updates)
+    :return: 0 when there is nothing to compare
+    """
+    if quantity.startswith("updates/"):
+        key = quantity.removeprefix("updates/")
+        values, recorded = np.asarray(got["updates"][key]), np.asarray(expected["updates"][key])
+        scale = np.abs(recorded).max()
+    elif quantity == "actions":
+        values, recorded, scale = np.asarray(got["actions"][WARMUP:]), np.asarray(expected["actions"][WARMUP:]), ACTION_BOUND
+    else:
+        values, recorded = np.asarray(got[quantity]), np.asarray(expected[quantity])
+        scale = ACTION_BOUND if quantity == "candidates" else np.abs(recorded).max(axis=-1, keepdims=True)[steps]
+    values, recorded = values[steps], recorded[steps]
+    if values.size == 0:
+        return 0.0
+    return float((np.abs(values - recorded) / np.maximum(scale, 1e-12)).max())
+
+
+def quantities(record: dict[str, Any]) -> list[str]:
+    """The quantities of a run that :func:`deviation` compares."""
+    selection = ["candidates", "e_q"] if record["chosen"] else []
+    return ["actions", *selection, *(f"updates/{key}" for key in sorted(record["updates"]))]
+
+
+def _dumps(golden: dict[str, dict[str, Any]]) -> str:
+    """The cases and their quantities one per line, each value on its line (a long one for the lists)."""
+    lines = []
+    for name in sorted(golden):
+        items = [f"  {json.dumps(key)}: {json.dumps(golden[name][key], sort_keys=True)}" for key in sorted(golden[name])]
+        lines.append(f" {json.dumps(name)}: {{\n" + ",\n".join(items) + "\n }")
+    return "{\n" + ",\n".join(lines) + "\n}"
+
+
+def _drift(got: dict[str, Any], expected: dict[str, Any]) -> dict[str, Any]:
+    """What ``tests/test_golden.py`` compares, as the largest deviation in the tight part and in the rest of the run."""
+    from test_golden import TIGHT_STEPS, tolerance  # the test's tolerances (it imports this module: not at the top)
+
+    end = horizon(expected, tolerance)
+    first, rest = slice(0, min(TIGHT_STEPS, end)), slice(TIGHT_STEPS, end)
+    drift: dict[str, Any] = {"horizon": end, "masks": got["masks"] == expected["masks"]}
+    for quantity in quantities(expected):
+        drift[quantity] = [float(f"{deviation(got, expected, quantity, steps):.2g}") for steps in (first, rest)]
+    moved = [abs(got["moved"][part] - value) / value for part, value in expected["moved"].items() if value > 0]
+    drift["moved"] = float(f"{max(moved):.2g}")
+    return drift
+
+
+def main(argv: list[str]) -> None:
+    parser = argparse.ArgumentParser(description="Record the golden runs, or measure how far a setting moves them.")
+    parser.add_argument("cases", nargs="*", help="the cases (default: all)")
+    parser.add_argument("--compare", action="store_true", help="compare with the recorded runs instead of recording")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (the recording and the test use 1)")
+    parser.add_argument("--save", type=Path, help="with --compare: also write the runs to this JSON file")
+    args = parser.parse_args(argv)
+    cases = args.cases or list(CASES)
     golden = json.loads(GOLDEN_FILE.read_text()) if GOLDEN_FILE.exists() else {}
-    golden.update({name: run_case(name) for name in cases})
-    GOLDEN_FILE.write_text(json.dumps(golden, indent=1, sort_keys=True) + "\n")
+    runs = {name: run_case(name, threads=args.threads) for name in cases}  # all first: then the file is written once
+    if args.compare:
+        for name, run in runs.items():
+            print(name, json.dumps(_drift(run, golden[name])), flush=True)
+        if args.save:
+            args.save.write_text(json.dumps(runs) + "\n")
+        return
+    golden.update(runs)
+    GOLDEN_FILE.write_text(_dumps(golden) + "\n")
     print(f"recorded {cases} in {GOLDEN_FILE}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
