@@ -249,13 +249,13 @@ class MyHerBuffer(HerReplayBuffer):
 )
 def test_her_needs_a_goal_conditioned_env(env, replay_buffer_class, message):
     policy = "MlpPolicy" if env == "Pendulum-v1" else "MultiInputPolicy"
-    make = (lambda: SOUP(policy, env if isinstance(env, str) else make_vec_env(env), replay_buffer_class=replay_buffer_class,
-                         **SMALL))  # fmt: skip
+    vec_env = env if isinstance(env, str) else make_vec_env(env)
     if message is None:
-        assert not isinstance(make().replay_buffer, HerReplayBuffer)
+        model = SOUP(policy, vec_env, replay_buffer_class=replay_buffer_class, **SMALL)
+        assert not isinstance(model.replay_buffer, HerReplayBuffer)
     else:
         with pytest.raises(ValueError, match=message):
-            make()
+            SOUP(policy, vec_env, replay_buffer_class=replay_buffer_class, **SMALL)
 
 
 # ---------------------------------------------------------------- learning
