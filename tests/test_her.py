@@ -269,7 +269,7 @@ def test_soup_with_her_learns_bit_flipping_that_it_does_not_learn_without():
         env = bit_flipping(n_envs=1, n_bits=8, seed=0)
         model = SOUP("MultiInputPolicy", env, learning_starts=200, batch_size=128, gamma=0.95, seed=0, stats_window_size=50,
                      **kwargs)  # fmt: skip
-        model.learn(6000)
+        model.learn(5000)
         return np.mean(model.ep_success_buffer)
 
     assert train(**HER) > 0.7
