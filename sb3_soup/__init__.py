@@ -2,7 +2,12 @@
 
 import os
 
-from sb3_soup.buffers import BootstrappedDictReplayBuffer, BootstrappedReplayBuffer
+from sb3_soup.buffers import (
+    BootstrappedDictReplayBuffer,
+    BootstrappedHerReplayBuffer,
+    BootstrappedNStepReplayBuffer,
+    BootstrappedReplayBuffer,
+)
 from sb3_soup.confidence import (
     AdaptiveConfidence,
     ConfidenceStep,
@@ -27,6 +32,8 @@ __all__ = [
     "SOUP",
     "AdaptiveConfidence",
     "BootstrappedDictReplayBuffer",
+    "BootstrappedHerReplayBuffer",
+    "BootstrappedNStepReplayBuffer",
     "BootstrappedReplayBuffer",
     "CnnPolicy",
     "ConfidenceStep",

@@ -1,16 +1,26 @@
 """
 Bootstrapped replay buffers: every transition is stored with a K-vector of Bernoulli(``mask_prob``) masks
 (Algorithm 1: "Sample bootstrapped mask m_t ~ M, store (s_t, a_t, s_t+1, r_t, m_t)").
+
+Each of SB3's replay buffers has a bootstrapped version, which SOUP builds when given SB3's class
+(:func:`bootstrapped_buffer_class`): ``ReplayBuffer`` -> :class:`BootstrappedReplayBuffer`, ``DictReplayBuffer`` ->
+:class:`BootstrappedDictReplayBuffer`, ``HerReplayBuffer`` -> :class:`BootstrappedHerReplayBuffer` (a relabelled
+transition keeps the masks of the transition it was made from) and ``NStepReplayBuffer`` ->
+:class:`BootstrappedNStepReplayBuffer` (an n-step sample has the masks of its first transition, the one sampled).
+The HER and n-step versions subclass SB3's buffers and reuse their sampling as it is.
 """
 
+import warnings
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
-from stable_baselines3.common.type_aliases import TensorDict
-from stable_baselines3.common.vec_env import VecNormalize
+from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples, TensorDict
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from stable_baselines3.her.goal_selection_strategy import GoalSelectionStrategy
+from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_soup.validation import check
 
@@ -157,20 +167,238 @@ class BootstrappedDictReplayBuffer(_MaskStorage, DictReplayBuffer):
         )
 
 
-def bootstrapped_buffer_class(replay_buffer_class: Any, observation_space: spaces.Space) -> type[ReplayBuffer]:
+class BootstrappedHerReplayBuffer(_MaskStorage, HerReplayBuffer):
     """
+    Hindsight Experience Replay (SB3's :class:`HerReplayBuffer`, see it for the other arguments) with a bool mask per
+    head stored with each transition. A virtual transition (the stored one with a new goal and its recomputed reward)
+    keeps the masks of the transition it was made from: relabelling changes the goal, not which heads see the
+    experience. The sampling is SB3's, as it is (real transitions first, then the virtual ones).
+
+    :param n_masks: number of masks per transition (number of bootstrapped heads K)
+    :param mask_prob: probability that a head sees a transition; 1 turns bootstrapping off
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Space,
+        env: VecEnv | None,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        n_sampled_goal: int = 4,
+        goal_selection_strategy: GoalSelectionStrategy | str = "future",
+        copy_info_dict: bool = False,
+        n_masks: int = 1,
+        mask_prob: float = 1.0,
+    ):
+        super().__init__(
+            buffer_size,
+            observation_space,
+            action_space,
+            env,  # type: ignore[arg-type]
+            device=device,
+            n_envs=n_envs,
+            optimize_memory_usage=optimize_memory_usage,
+            handle_timeout_termination=handle_timeout_termination,
+            n_sampled_goal=n_sampled_goal,
+            goal_selection_strategy=goal_selection_strategy,
+            copy_info_dict=copy_info_dict,
+        )
+        self._init_masks(n_masks, mask_prob)
+        # The masks of the real and of the virtual part of the minibatch being sampled (only during sample)
+        self._sampled_masks: dict[str, th.Tensor] = {}
+
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        self._store_masks()
+        super().add(*args, **kwargs)
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> BootstrappedDictReplayBufferSamples:  # type: ignore[override]
+        """
+        SB3's HER sample, with each transition's masks (a virtual transition has the masks of its source transition).
+
+        :param batch_size: Number of element to sample
+        :param env: Associated VecEnv to normalize the observations/rewards when sampling
+        :return: Samples, real transitions first, then the virtual ones (as SB3's)
+        """
+        self._sampled_masks = {}
+        try:
+            samples = super().sample(batch_size, env)
+            # HerReplayBuffer.sample concatenates the real samples, then the virtual ones
+            masks = th.cat((self._sampled_masks["real"], self._sampled_masks["virtual"]))  # (B, K)
+        finally:
+            self._sampled_masks = {}
+        return BootstrappedDictReplayBufferSamples(**samples._asdict(), masks=masks)
+
+    def _get_real_samples(
+        self, batch_indices: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
+    ) -> DictReplayBufferSamples:
+        self._sampled_masks["real"] = self.to_torch(self.masks[batch_indices, env_indices])
+        return super()._get_real_samples(batch_indices, env_indices, env)
+
+    def _get_virtual_samples(
+        self, batch_indices: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
+    ) -> DictReplayBufferSamples:
+        # The source transitions' masks: the new goal is sampled from their episodes, the masks stay theirs
+        self._sampled_masks["virtual"] = self.to_torch(self.masks[batch_indices, env_indices])
+        return super()._get_virtual_samples(batch_indices, env_indices, env)
+
+
+class BootstrappedNStepReplayBuffer(_MaskStorage, NStepReplayBuffer):
+    """
+    n-step returns (SB3's :class:`NStepReplayBuffer`, see it and :class:`ReplayBuffer` for the other arguments) with a
+    bool mask per head stored with each transition. A sample has the masks of the first transition of its n-step
+    sequence (the one sampled, whose observation and action it holds); its reward is the discounted sum of up to
+    ``n_steps`` rewards and its ``discounts`` the ``gamma ** k`` of the value it bootstraps from (SB3's computation).
+
+    :param n_steps: Number of steps to accumulate rewards for n-step returns
+    :param gamma: Discount factor for future rewards
+    :param n_masks: number of masks per transition (number of bootstrapped heads K)
+    :param mask_prob: probability that a head sees a transition; 1 turns bootstrapping off
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        n_steps: int = 3,
+        gamma: float = 0.99,
+        n_masks: int = 1,
+        mask_prob: float = 1.0,
+    ):
+        n_steps, gamma = check("n_steps", n_steps), check("gamma", gamma)
+        if optimize_memory_usage:
+            raise ValueError(
+                "optimize_memory_usage=True is not supported with n-step returns (SB3's NStepReplayBuffer does not support "
+                "it): pass optimize_memory_usage=False, or n_steps=1"
+            )
+        super().__init__(
+            buffer_size,
+            observation_space,
+            action_space,
+            device,
+            n_envs,
+            optimize_memory_usage,
+            handle_timeout_termination,
+            n_steps=n_steps,
+            gamma=gamma,
+        )
+        self._init_masks(n_masks, mask_prob)
+
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        self._store_masks()
+        super().add(*args, **kwargs)
+
+    def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> BootstrappedReplayBufferSamples:  # type: ignore[override]
+        # NStepReplayBuffer._get_samples first draws each sample's env, np.random.randint(0, n_envs, size=batch_inds.shape),
+        # and does not return it: the same draw, made on the same generator state, gives the envs of its samples
+        state = np.random.get_state()
+        env_indices = np.random.randint(0, self.n_envs, size=batch_inds.shape)
+        np.random.set_state(state)
+        samples = super()._get_samples(batch_inds, env)
+        return BootstrappedReplayBufferSamples(
+            **samples._asdict(),
+            masks=self.to_torch(self.masks[batch_inds, env_indices]),  # (B, K), the first transition's
+        )
+
+
+BOOTSTRAPPED_BUFFERS: dict[type[ReplayBuffer], type[ReplayBuffer]] = {
+    ReplayBuffer: BootstrappedReplayBuffer,
+    DictReplayBuffer: BootstrappedDictReplayBuffer,
+    HerReplayBuffer: BootstrappedHerReplayBuffer,
+    NStepReplayBuffer: BootstrappedNStepReplayBuffer,
+}
+"""SB3's replay buffer classes and the bootstrapped versions SOUP builds for them."""
+
+_BOOTSTRAPPED_CLASSES = tuple(BOOTSTRAPPED_BUFFERS.values())
+_GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
+
+
+def is_bootstrapped_buffer(buffer: Any) -> bool:
+    """:return: whether ``buffer`` is one of the bootstrapped replay buffers (which store the masks SOUP needs)"""
+    return isinstance(buffer, _BOOTSTRAPPED_CLASSES)
+
+
+def _accepted() -> str:
+    sb3 = ", ".join(cls.__name__ for cls in BOOTSTRAPPED_BUFFERS)
+    ours = ", ".join(f"sb3_soup.{cls.__name__}" for cls in _BOOTSTRAPPED_CLASSES)
+    return f"None, one of SB3's {sb3} (SOUP uses their bootstrapped versions) or a subclass of {ours}"
+
+
+def bootstrapped_buffer_class(
+    replay_buffer_class: Any,
+    observation_space: spaces.Space,
+    n_steps: int = 1,
+    gamma: float = 0.99,
+    replay_buffer_kwargs: dict[str, Any] | None = None,
+) -> type[ReplayBuffer]:
+    """
+    SB3's choice of the replay buffer (``OffPolicyAlgorithm._setup_model``), bootstrapped: the class of SOUP's replay
+    buffer, which stores the masks. ``None`` gives SB3's default for the observation space and ``n_steps`` (Dict
+    observations: :class:`BootstrappedDictReplayBuffer`; ``n_steps > 1``: :class:`BootstrappedNStepReplayBuffer`, with
+    ``n_steps`` and ``gamma`` added to ``replay_buffer_kwargs``; else :class:`BootstrappedReplayBuffer`); one of SB3's
+    classes gives its bootstrapped version. As SB3, it warns that ``n_steps`` is ignored when a class is given (unless it
+    is an n-step buffer already set to ``n_steps``, as a loaded model's is).
+
     :param replay_buffer_class: what the user passed to SOUP (``None``: the default)
     :param observation_space: the env's observation space
-    :return: the class of SOUP's replay buffer: a bootstrapped buffer (flat or Dict), which stores the masks
+    :param n_steps: SOUP's ``n_steps`` (n-step returns when > 1)
+    :param gamma: the discount factor
+    :param replay_buffer_kwargs: the buffer's keyword arguments, updated in place with ``n_steps`` and ``gamma`` when the
+        default buffer is an n-step one
+    :return: the class of SOUP's replay buffer
     """
+    is_dict = isinstance(observation_space, spaces.Dict)
     if replay_buffer_class is None:
-        return BootstrappedDictReplayBuffer if isinstance(observation_space, spaces.Dict) else BootstrappedReplayBuffer
-    if not (
-        isinstance(replay_buffer_class, type)
-        and issubclass(replay_buffer_class, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer))
-    ):
+        if is_dict:
+            if n_steps > 1:
+                raise ValueError(
+                    f"n_steps={n_steps}: n-step returns are not supported for Dict observation spaces (as in SB3): "
+                    "pass n_steps=1"
+                )
+            return BootstrappedDictReplayBuffer
+        if n_steps > 1:
+            if replay_buffer_kwargs is not None:
+                replay_buffer_kwargs.update(n_steps=n_steps, gamma=gamma)
+            return BootstrappedNStepReplayBuffer
+        return BootstrappedReplayBuffer
+    sb3_class = (ours for sb3, ours in BOOTSTRAPPED_BUFFERS.items() if replay_buffer_class is sb3)
+    buffer_class = next(sb3_class, replay_buffer_class)
+    if not (isinstance(buffer_class, type) and issubclass(buffer_class, _BOOTSTRAPPED_CLASSES)):
         raise ValueError(
-            "replay_buffer_class must be None or a subclass of sb3_soup.BootstrappedReplayBuffer or "
-            f"BootstrappedDictReplayBuffer (SOUP needs the bootstrap masks), got {replay_buffer_class!r}"
+            f"replay_buffer_class must be {_accepted()} (SOUP needs the bootstrap masks), got {replay_buffer_class!r}"
         )
-    return replay_buffer_class
+    wants_dict = issubclass(buffer_class, DictReplayBuffer)
+    if wants_dict != is_dict:
+        raise ValueError(
+            f"replay_buffer_class={replay_buffer_class.__name__} stores "
+            f"{'Dict' if wants_dict else 'flat (non-Dict)'} observations, the env's observation space is "
+            f"{type(observation_space).__name__}: use "
+            f"{'a Dict buffer (DictReplayBuffer, HerReplayBuffer)' if is_dict else 'ReplayBuffer or NStepReplayBuffer'}"
+        )
+    if issubclass(buffer_class, HerReplayBuffer):
+        assert isinstance(observation_space, spaces.Dict)
+        missing = [key for key in _GOAL_KEYS if key not in observation_space.spaces]
+        if missing:
+            raise ValueError(
+                f"replay_buffer_class={replay_buffer_class.__name__} needs a goal-conditioned env, whose observations "
+                f"have the keys {list(_GOAL_KEYS)}; the env's lack {missing}"
+            )
+    set_to_n_steps = issubclass(buffer_class, NStepReplayBuffer) and (replay_buffer_kwargs or {}).get("n_steps") == n_steps
+    if n_steps > 1 and not set_to_n_steps:
+        warnings.warn(
+            f"`n_steps={n_steps}` is ignored because a custom `replay_buffer_class` "
+            f"(`{replay_buffer_class.__name__}`) was passed: n-step returns are only set up "
+            "automatically when `replay_buffer_class` is `None`. "
+            "To use n-step returns with a custom replay buffer, configure it explicitly, e.g. "
+            f'`replay_buffer_kwargs={{"n_steps": {n_steps}, "gamma": {gamma}}}`.',
+            stacklevel=3,
+        )
+    return buffer_class

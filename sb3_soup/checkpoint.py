@@ -566,7 +566,8 @@ def load_checkpoint(
     exact = state is not None and state["env"] is not None and env is not None
     model = algo_class.load(checkpoint.model, env=env, force_reset=not exact, **load_kwargs)
     if checkpoint.replay_buffer is not None and isinstance(model, OffPolicyAlgorithm):
-        model.load_replay_buffer(checkpoint.replay_buffer)
+        # An exact resume continues the saved episodes: a HerReplayBuffer keeps its last trajectory open
+        model.load_replay_buffer(checkpoint.replay_buffer, truncate_last_traj=not exact)
     if state is not None:
         restore_training_state(model, state, path)
     return model

@@ -21,17 +21,19 @@ def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
     return ((masks * values).sum(dim=1) / masks.sum(dim=1).clamp(min=1)).squeeze(-1)
 
 
-def td_target(rewards: th.Tensor, dones: th.Tensor, gamma: float, next_q: th.Tensor) -> th.Tensor:
+def td_target(rewards: th.Tensor, dones: th.Tensor, discounts: float | th.Tensor, next_q: th.Tensor) -> th.Tensor:
     """
-    Eq. 4: ``y = r + gamma * (1 - done) * Q'(s', mu'(s'))``, per head.
+    Eq. 4: ``y = r + gamma * (1 - done) * Q'(s', mu'(s'))``, per head; with n-step returns (SB3's ``NStepReplayBuffer``),
+    ``r`` is the discounted sum of the n rewards and ``discounts`` the ``gamma ** n`` of each sample (fewer steps where
+    its episode ended sooner), as in SB3's TD3: ``y = r + (1 - done) * discount * Q'``.
 
     :param rewards: ``(B, 1)``
     :param dones: ``(B, 1)``, 1.0 where the episode terminated (timeouts are not terminations, see SB3)
-    :param gamma: the discount factor
+    :param discounts: the discount factor gamma, or ``(B, 1)``, each sample's (n-step returns)
     :param next_q: ``(H, B, 1)``, each head's value of the next state (see :meth:`sb3_soup.SOUP._next_q`)
     :return: ``(H, B, 1)``
     """
-    return rewards + (1 - dones) * gamma * next_q
+    return rewards + (1 - dones) * discounts * next_q
 
 
 def critic_loss(current_q: th.Tensor, target_q: th.Tensor, masks: th.Tensor) -> th.Tensor:

@@ -2,6 +2,7 @@
 
 import io
 import pathlib
+import warnings
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -14,6 +15,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import update_learning_rate
+from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 try:  # SB3 >= 2.6
     from stable_baselines3.common.utils import FloatSchedule as _as_schedule
@@ -21,11 +23,10 @@ except ImportError:  # pragma: no cover
     from stable_baselines3.common.utils import get_schedule_fn as _as_schedule  # type: ignore[assignment]
 
 from sb3_soup.buffers import (
-    BootstrappedDictReplayBuffer,
     BootstrappedDictReplayBufferSamples,
-    BootstrappedReplayBuffer,
     BootstrappedReplayBufferSamples,
     bootstrapped_buffer_class,
+    is_bootstrapped_buffer,
 )
 from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
@@ -88,11 +89,17 @@ class SOUP(OffPolicyAlgorithm):
         like ``(5, "step")`` or ``(2, "episode")``.
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
     :param action_noise: replaces the built-in decayed Gaussian exploration noise when given (SB3 ``ActionNoise``)
-    :param replay_buffer_class: Replay buffer class: a :class:`BootstrappedReplayBuffer` (default) or
-        :class:`BootstrappedDictReplayBuffer` subclass, since SOUP needs the masks
+    :param replay_buffer_class: Replay buffer class to use: one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
+        ``HerReplayBuffer`` (for instance), ``NStepReplayBuffer``, for which SOUP builds their bootstrapped versions
+        (see :mod:`sb3_soup.buffers`: they store the masks), or a subclass of those. If ``None``, it will be
+        automatically selected (as SB3 does).
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
         (needs ``replay_buffer_kwargs=dict(handle_timeout_termination=False)``, as in SB3)
+    :param n_steps: When n_step > 1, uses n-step return (with the bootstrapped ``NStepReplayBuffer``) when updating the
+        Q-value network (as SB3's TD3). Only used when ``replay_buffer_class`` is ``None``, and not supported for Dict
+        observation spaces; with a custom ``replay_buffer_class``, configure it with
+        ``replay_buffer_kwargs={"n_steps": ..., "gamma": ...}`` instead.
     :param n_heads: number of bootstrapped heads K
     :param n_actor_heads: actor heads (default: ``n_heads``, or the preset's)
     :param n_critic_heads: critic heads (default: ``n_heads``, or the preset's)
@@ -168,6 +175,7 @@ class SOUP(OffPolicyAlgorithm):
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
         optimize_memory_usage: bool = False,
+        n_steps: int = 1,
         n_heads: int = 5,
         n_actor_heads: int | None = None,
         n_critic_heads: int | None = None,
@@ -212,6 +220,7 @@ class SOUP(OffPolicyAlgorithm):
             action_noise=action_noise,
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
             alpha=alpha,
             decay=decay,
             temperature=temperature,
@@ -245,8 +254,9 @@ class SOUP(OffPolicyAlgorithm):
             args["gradient_steps"],
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
+            replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),  # a copy: the masks' arguments are added to it
             optimize_memory_usage=args["optimize_memory_usage"],
+            n_steps=args["n_steps"],
             policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=args["stats_window_size"],
             tensorboard_log=tensorboard_log,
@@ -338,9 +348,20 @@ class SOUP(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         check_policy(self.policy_class, self.policy_kwargs, self.observation_space, sorted(self.policy_aliases))
-        self.replay_buffer_class = bootstrapped_buffer_class(self.replay_buffer_class, self.observation_space)
+        self.replay_buffer_class = bootstrapped_buffer_class(
+            self.replay_buffer_class, self.observation_space, self.n_steps, self.gamma, self.replay_buffer_kwargs
+        )
         self.replay_buffer_kwargs.update(n_masks=max(self.n_actor_heads, self.n_critic_heads), mask_prob=self.mask_prob)
-        super()._setup_model()
+        if issubclass(self.replay_buffer_class, HerReplayBuffer) and self.env is None:
+            raise ValueError(
+                "a model with a HerReplayBuffer needs its env (it computes the rewards of the relabelled goals): "
+                "load it with SOUP.load(path, env=...)"
+            )
+        with warnings.catch_warnings():
+            # SB3 warns that n_steps is ignored whenever the class is set, as it is now: bootstrapped_buffer_class warned
+            # when it was ignored indeed
+            warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored", category=UserWarning)
+            super()._setup_model()
         self._create_aliases()
         self.critic_lr_schedule = _as_schedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
@@ -459,7 +480,9 @@ class SOUP(OffPolicyAlgorithm):
 
         with th.no_grad():
             next_q = self._next_q(data.next_observations, critic_pairs)  # (H, B, 1)
-            target_q = td_target(data.rewards, data.dones, self.gamma, next_q)  # eq. 4
+            # n-step returns: the discount of the value bootstrapped from, gamma ** (steps summed in the reward), (B, 1)
+            discounts = self.gamma if data.discounts is None else data.discounts
+            target_q = td_target(data.rewards, data.dones, discounts, next_q)  # eq. 4
         critic_heads = self.policy.critic_heads(critic_pairs)
         current_q = self.critic(data.observations, data.actions, head=critic_heads.head_arg, grad_scale=critic_heads.scale)
         per_pair = critic_loss(current_q, target_q, self._pair_masks(masks, critic_pairs))  # (H,), eq. 3
@@ -686,9 +709,12 @@ class SOUP(OffPolicyAlgorithm):
         """
         Load a replay buffer saved by ``save_replay_buffer``, after checking that it fits this model (bootstrap masks for
         each head pair, same number of envs). The model's buffer is only replaced when the file is complete and fits.
+        A HER buffer is given the model's env (to compute the rewards of relabelled goals), as in SB3.
 
         :param path: Path to the pickled replay buffer
-        :param truncate_last_traj: unused (SB3 uses it for ``HerReplayBuffer``, which SOUP does not support)
+        :param truncate_last_traj: When using ``HerReplayBuffer``: if ``True``, we assume that the last trajectory in the
+            replay buffer was finished (and truncate it); if ``False``, we assume that we continue the same trajectory
+            (same episode), as SB3
         """
         try:
             buffer = load_from_pkl(path, self.verbose)
@@ -699,10 +725,11 @@ class SOUP(OffPolicyAlgorithm):
                 f"could not read the replay buffer {path}: the file is truncated or corrupt (a process killed while writing "
                 f"it leaves such files): {type(error).__name__}: {error}"
             ) from error
-        if not isinstance(buffer, (BootstrappedReplayBuffer, BootstrappedDictReplayBuffer)):
+        if not is_bootstrapped_buffer(buffer):
             raise ValueError(
-                f"{path} holds a {type(buffer).__name__}, not a sb3_soup BootstrappedReplayBuffer or "
-                "BootstrappedDictReplayBuffer (SOUP needs the bootstrap masks)"
+                f"{path} holds a {type(buffer).__name__}, not one of sb3_soup's bootstrapped replay buffers "
+                "(BootstrappedReplayBuffer, BootstrappedDictReplayBuffer, BootstrappedHerReplayBuffer, "
+                "BootstrappedNStepReplayBuffer): SOUP needs the bootstrap masks"
             )
         if buffer.n_masks != self.policy.n_pairs:
             raise ValueError(
@@ -711,6 +738,15 @@ class SOUP(OffPolicyAlgorithm):
             )
         if buffer.n_envs != self.n_envs:
             raise ValueError(f"the replay buffer in {path} was filled by {buffer.n_envs} envs, this model has {self.n_envs}")
+        if isinstance(buffer, HerReplayBuffer):
+            if self.env is None:
+                raise ValueError(
+                    f"the replay buffer in {path} is a HerReplayBuffer, which needs the model's env (to compute the "
+                    "rewards of relabelled goals): set it first (SOUP.load(path, env=...) or model.set_env(env))"
+                )
+            buffer.set_env(self.env)
+            if truncate_last_traj:
+                buffer.truncate_last_trajectory()
         buffer.device = self.device
         self.replay_buffer = buffer
 

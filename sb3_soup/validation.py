@@ -209,6 +209,7 @@ RULES: dict[str, Rule] = {
         {"n_masks", "mask_prob"}, "replay buffer", "SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
     ),
     "optimize_memory_usage": boolean("memory efficient replay buffer"),
+    "n_steps": integer(1, "steps of the n-step returns, 1: one-step TD targets"),
     "policy_kwargs": _keyword_dict(
         {"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"},
         "policy",

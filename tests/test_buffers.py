@@ -1,11 +1,22 @@
 """Bootstrapped replay buffers: one bool mask per head with each transition."""
 
+import re
+
 import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3 import HerReplayBuffer
+from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
 
-from sb3_soup import SOUP, BootstrappedDictReplayBuffer, BootstrappedReplayBuffer
+from sb3_soup import (
+    SOUP,
+    BootstrappedDictReplayBuffer,
+    BootstrappedHerReplayBuffer,
+    BootstrappedNStepReplayBuffer,
+    BootstrappedReplayBuffer,
+)
+from sb3_soup.buffers import bootstrapped_buffer_class
 
 OBS = spaces.Box(-1, 1, (3,), np.float32)
 ACT = spaces.Box(-1, 1, (2,), np.float32)
@@ -88,3 +99,50 @@ def test_replay_buffer_round_trip_keeps_the_masks(tmp_path):
     for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts", "masks"):
         assert np.array_equal(getattr(original, name), getattr(restored, name)), name
     assert 0.3 < restored.masks[:120].mean() < 0.7
+
+
+# ---------------------------------------------------------------- which buffer SOUP builds
+
+DICT_OBS = spaces.Dict({"observation": OBS, "achieved_goal": OBS, "desired_goal": OBS})
+
+
+@pytest.mark.parametrize(
+    "given, observation_space, n_steps, expected",
+    [
+        (None, OBS, 1, BootstrappedReplayBuffer),
+        (None, DICT_OBS, 1, BootstrappedDictReplayBuffer),
+        (None, OBS, 3, BootstrappedNStepReplayBuffer),
+        (ReplayBuffer, OBS, 1, BootstrappedReplayBuffer),
+        (DictReplayBuffer, DICT_OBS, 1, BootstrappedDictReplayBuffer),
+        (HerReplayBuffer, DICT_OBS, 1, BootstrappedHerReplayBuffer),
+        (NStepReplayBuffer, OBS, 1, BootstrappedNStepReplayBuffer),
+        (BootstrappedHerReplayBuffer, DICT_OBS, 1, BootstrappedHerReplayBuffer),
+    ],
+)
+def test_sb3s_buffer_classes_become_their_bootstrapped_versions(given, observation_space, n_steps, expected):
+    kwargs: dict = {}
+    assert bootstrapped_buffer_class(given, observation_space, n_steps, 0.9, kwargs) is expected
+    assert kwargs == ({"n_steps": 3, "gamma": 0.9} if n_steps > 1 else {})  # SB3's n-step arguments, for the default
+
+
+class MyReplayBuffer(ReplayBuffer):
+    pass
+
+
+class MyBootstrappedBuffer(BootstrappedReplayBuffer):
+    pass
+
+
+def test_other_buffer_classes_are_refused_with_the_accepted_ones():
+    assert bootstrapped_buffer_class(MyBootstrappedBuffer, OBS) is MyBootstrappedBuffer  # a subclass of ours keeps masks
+    accepted = (
+        "replay_buffer_class must be None, one of SB3's ReplayBuffer, DictReplayBuffer, HerReplayBuffer, NStepReplayBuffer "
+        "(SOUP uses their bootstrapped versions) or a subclass of sb3_soup.BootstrappedReplayBuffer, "
+        "sb3_soup.BootstrappedDictReplayBuffer, sb3_soup.BootstrappedHerReplayBuffer, sb3_soup.BootstrappedNStepReplayBuffer "
+        "(SOUP needs the bootstrap masks), got "
+    )
+    for given in (MyReplayBuffer, "ReplayBuffer", ReplayBuffer(10, OBS, ACT)):
+        with pytest.raises(ValueError, match=re.escape(accepted)):
+            SOUP("MlpPolicy", "Pendulum-v1", replay_buffer_class=given, buffer_size=100)
+    with pytest.raises(ValueError, match=r"replay_buffer_class=DictReplayBuffer stores Dict observations.*is Box"):
+        bootstrapped_buffer_class(DictReplayBuffer, OBS)

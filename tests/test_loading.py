@@ -206,7 +206,7 @@ def test_replay_buffers_that_do_not_fit_are_refused(saved, tmp_path):
 
     with open(tmp_path / "dict.pkl", "wb") as file:
         pickle.dump({"not": "a buffer"}, file)
-    with pytest.raises(ValueError, match=r"holds a dict, not a sb3_soup BootstrappedReplayBuffer"):
+    with pytest.raises(ValueError, match=r"holds a dict, not one of sb3_soup's bootstrapped replay buffers"):
         model.load_replay_buffer(tmp_path / "dict.pkl")
 
     with warnings.catch_warnings():
