@@ -196,7 +196,7 @@ def _confidence(name: str, value: Any) -> Any:
 RULES: dict[str, Rule] = {
     # SOUP (SB3's off-policy arguments)
     "learning_rate": _learning_rate,
-    "critic_learning_rate": _learning_rate,
+    "critic_learning_rate": optional(_learning_rate, "the same as learning_rate"),
     "buffer_size": integer(1, "replay buffer size"),
     "learning_starts": integer(0, "steps of random actions before learning"),
     "batch_size": integer(1, "minibatch size"),
