@@ -253,7 +253,7 @@ class AdaptiveConfidence(ConfidenceStrategy):
     """
 
     reward_baseline: th.Tensor
-    baseline_ready: th.Tensor
+    baseline_pending: th.Tensor
 
     def __init__(
         self,
@@ -276,9 +276,18 @@ class AdaptiveConfidence(ConfidenceStrategy):
         self.max_rollout = max_rollout
         self.net_arch = [256, 128] if net_arch is None else list(net_arch)
         self.register_buffer("reward_baseline", th.zeros(()))
-        self.register_buffer("baseline_ready", th.zeros((), dtype=th.bool))
+        # 1.0 until the first update sets the baseline to its mean reward, then 0.0: a float (not a bool), as every
+        # entry of the policy's state_dict, which SB3's tests and weight averaging treat as floats
+        self.register_buffer("baseline_pending", th.ones(()))
         # The selections made since the last update, with their rewards: REINFORCE is on-policy
         self._rollout: list[ConfidenceStep] = []
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        # files saved before 0.2.0a0's issue 18 hold the bool "baseline_ready" instead of the float "baseline_pending"
+        ready = state_dict.pop(prefix + "baseline_ready", None)
+        if ready is not None and prefix + "baseline_pending" not in state_dict:
+            state_dict[prefix + "baseline_pending"] = (~ready.bool()).float()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def setup(self, policy: "SOUPPolicy") -> None:
         super().setup(policy)
@@ -359,11 +368,11 @@ class AdaptiveConfidence(ConfidenceStrategy):
         if self.baseline:
             with th.no_grad():
                 mean_reward = rewards.mean()
-                if bool(self.baseline_ready):
-                    self.reward_baseline.lerp_(mean_reward, self.baseline_rate)
-                else:
+                if bool(self.baseline_pending > 0.5):
                     self.reward_baseline.copy_(mean_reward)
-                    self.baseline_ready.fill_(True)
+                    self.baseline_pending.fill_(0.0)
+                else:
+                    self.reward_baseline.lerp_(mean_reward, self.baseline_rate)
         return {
             "confidence_loss": loss.item(),
             "confidence_baseline": float(self.reward_baseline),

@@ -233,15 +233,18 @@ class EnsembleActor(EnsembleModel):
 class EnsembleCritic(EnsembleModel):
     """
     Bootstrapped critic: shared body [256, 256] where the action joins at the second layer (as in DDPG),
-    then K heads [128] -> 1 (paper sizes by default).
+    then K heads [128] -> 1 (paper sizes by default). With ``action_layer=0`` the action joins at the input, as in
+    SB3's ``ContinuousCritic`` (``Q(s, a) = heads(body([features(s); a]))``); with an empty body the heads take
+    ``[features(s); a]``.
 
-    The second layer is split as ``W [h1; a] = W_h h1 + W_a a`` so that scoring K candidates computes the observation
-    part once: the K x K matrix ``V[i, k] = Q_i(s, a^k)`` costs one body pass plus K cheap action projections.
+    The layer the action joins is split as ``W [h; a] = W_h h + W_a a`` so that scoring K candidates computes the
+    observation part once: the K x K matrix ``V[i, k] = Q_i(s, a^k)`` costs one observation pass plus K cheap action
+    projections (and, after the joint layer, one pass of the rest of the body per candidate).
 
     :param observation_space: observation space
     :param action_space: action space (Box)
     :param n_heads: number of critic heads
-    :param body_arch: hidden sizes of the shared body (at least two: the action joins at the second)
+    :param body_arch: hidden sizes of the shared body (at least two when the action joins at the second)
     :param head_arch: hidden sizes of each head
     :param features_extractor: features extractor (SB3)
     :param features_dim: its output size
@@ -249,7 +252,12 @@ class EnsembleCritic(EnsembleModel):
     :param normalize_images: whether to divide images by 255
     :param share_features_extractor: ``features_extractor`` is the actor's (as SB3's ``ContinuousCritic``): the critic
         reads its features without gradient, and neither trains it nor soft-updates it (the actor does)
+    :param action_layer: the body layer whose input the action joins: 1, the second (the paper's DDPG critic), or 0,
+        the first (SB3's critic)
     """
+
+    obs_layer: nn.Linear | None
+    joint_layer: nn.Linear | None
 
     def __init__(
         self,
@@ -263,24 +271,40 @@ class EnsembleCritic(EnsembleModel):
         activation_fn: type[nn.Module] = nn.LeakyReLU,
         normalize_images: bool = True,
         share_features_extractor: bool = False,
+        action_layer: int = 1,
     ):
         super().__init__(
             observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
         )
         self.share_features_extractor = share_features_extractor
-        if len(body_arch) < 2:
-            raise ValueError(f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {body_arch}")
+        if action_layer not in (0, 1):
+            raise ValueError(
+                f"net_arch['qf_action_layer'] must be 0 (the action joins the critic's input, as in SB3) or 1 (at the "
+                f"second layer, the paper's DDPG critic), got {action_layer!r}"
+            )
+        if action_layer == 1 and len(body_arch) < 2:
+            raise ValueError(
+                f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {body_arch}; "
+                "with net_arch['qf_action_layer']=0 the action joins at the input (SB3's critic) and any body goes"
+            )
         self.n_heads = n_heads
         self.body_arch = body_arch
         self.head_arch = head_arch
         self.features_dim = features_dim
         self.activation_fn = activation_fn
+        self.action_layer = action_layer
         action_dim = get_action_dim(action_space)
-        self.obs_layer = nn.Linear(features_dim, body_arch[0])  # (F -> H1)
-        self.joint_layer = nn.Linear(body_arch[0] + action_dim, body_arch[1])  # ([H1, A] -> H2)
-        self.body = mlp(body_arch[1:], activation_fn)  # remaining body layers (empty for [H1, H2])
+        if action_layer == 1:
+            self.obs_layer = nn.Linear(features_dim, body_arch[0])  # (F -> H1)
+            self.joint_layer = nn.Linear(body_arch[0] + action_dim, body_arch[1])  # ([H1, A] -> H2)
+            self.body = mlp(body_arch[1:], activation_fn)  # remaining body layers (empty for [H1, H2])
+        else:
+            self.obs_layer = None
+            # ([F, A] -> H1), or no body: the heads take [F, A]
+            self.joint_layer = nn.Linear(features_dim + action_dim, body_arch[0]) if body_arch else None
+            self.body = mlp(body_arch, activation_fn)  # remaining body layers
         self.activation = activation_fn()
-        self.heads = HeadStack(body_arch[-1], head_arch, 1, n_heads, activation_fn)
+        self.heads = HeadStack(body_arch[-1] if body_arch else features_dim + action_dim, head_arch, 1, n_heads, activation_fn)
 
     def _get_constructor_parameters(self) -> dict:
         data = super()._get_constructor_parameters()
@@ -293,6 +317,7 @@ class EnsembleCritic(EnsembleModel):
                 activation_fn=self.activation_fn,
                 features_extractor=self.features_extractor,
                 share_features_extractor=self.share_features_extractor,
+                action_layer=self.action_layer,
             )
         )
         return data
@@ -307,7 +332,11 @@ class EnsembleCritic(EnsembleModel):
                 features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
         else:
             features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
-        h1 = self.activation(self.obs_layer(features))  # (B, H1)
+        h1 = features if self.obs_layer is None else self.activation(self.obs_layer(features))  # (B, H1) or (B, F)
+        if self.joint_layer is None:  # no body: the heads take [features; action]
+            if actions.dim() == 3:
+                h1 = h1.expand(actions.shape[0], -1, -1)  # (N, B, F)
+            return scale_grad(th.cat([h1, actions], dim=-1), grad_scale)
         w_obs, w_act = self.joint_layer.weight.split([h1.shape[-1], actions.shape[-1]], dim=1)
         z_obs = F.linear(h1, w_obs, self.joint_layer.bias)  # (B, H2)
         # the action projection is fused with the addition of the observation part (one op, one output tensor)
@@ -354,7 +383,8 @@ def soft_update(model: EnsembleModel, target: EnsembleModel, tau: float, head: i
     every head (``head=None``). Buffers (e.g. batch-norm statistics) are copied.
     """
     with th.no_grad():
-        th._foreach_lerp_(target.body_parameters(), model.body_parameters(), tau)
+        if model.body_parameters():  # none for a linear body over a parameter-free extractor (net_arch [] or [64])
+            th._foreach_lerp_(target.body_parameters(), model.body_parameters(), tau)
         if head is None:
             th._foreach_lerp_(target.head_parameters(), model.head_parameters(), tau)
         else:

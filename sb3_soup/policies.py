@@ -20,29 +20,88 @@ from sb3_soup.validation import check, check_head_counts
 
 # The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
 DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
+# The critic body layer the action joins: 1, the second (the paper's DDPG critic), 0, the input (SB3's critic)
+DEFAULT_ACTION_LAYER = 1
+SOUP_NET_ARCH_KEYS = (*DEFAULT_NET_ARCH, "qf_action_layer")
+NetArch = list[int] | dict[str, Any]
 
 
-def parse_net_arch(net_arch: dict[str, list[int]] | None) -> dict[str, list[int]]:
-    """Fill the missing entries of ``net_arch`` with the paper's sizes and check the others."""
+def _layer_sizes(name: str, sizes: Any, example: list[int]) -> list[int]:
+    valid = isinstance(sizes, (list, tuple)) and all(
+        isinstance(size, (int, np.integer)) and not isinstance(size, (bool, np.bool_)) and size > 0 for size in sizes
+    )
+    if not valid:
+        raise ValueError(f"{name} must be a list of positive ints (layer sizes), e.g. {example}; got {sizes!r}")
+    return [int(size) for size in sizes]
+
+
+def _split_hidden_layers(sizes: list[int]) -> tuple[list[int], list[int]]:
+    """SB3's hidden layers as SOUP's (shared body, per-head layers): every layer but the last, and the last."""
+    return sizes[:-1], sizes[-1:]
+
+
+def parse_net_arch(net_arch: NetArch | None) -> dict[str, Any]:
+    """
+    ``net_arch`` in SOUP's form: the shared bodies and the K heads of actor and critic, and where the action joins the
+    critic. Three forms are accepted:
+
+    - SOUP's: ``dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128], qf_action_layer=1)`` (the
+      paper's sizes, the default; missing keys take the default; ``qf_action_layer``: 1, the action joins the critic at
+      its second body layer, as in the paper's DDPG; 0, at its input, as in SB3);
+    - SB3's list, ``[400, 300]``: the hidden layers of the actor and of the critic (as TD3's and DDPG's);
+    - SB3's ``dict(pi=[400, 300], qf=[400, 300])``: the actor's and the critic's hidden layers.
+
+    SB3's forms map onto SOUP's by one rule: every hidden layer but the last is the shared body, the last is each
+    head's own hidden layer (``[400, 300]``: body [400], heads [300] -> output; ``[64]``: no body, heads [64];
+    ``[]``: linear heads), and the critic takes the action with the observation's features at its input, as SB3's
+    ``ContinuousCritic``. With one head, the networks are SB3's.
+
+    :param net_arch: one of the forms above, or None (the default)
+    :return: SOUP's form, every key set
+    """
     if net_arch is None:
-        return {key: list(value) for key, value in DEFAULT_NET_ARCH.items()}
+        net_arch = {}
+    if isinstance(net_arch, (list, tuple)):
+        body, head = _split_hidden_layers(_layer_sizes("net_arch", net_arch, [400, 300]))
+        return dict(pi_body=body, pi_head=head, qf_body=list(body), qf_head=list(head), qf_action_layer=0)
     if not isinstance(net_arch, dict):
         raise ValueError(
-            f"net_arch must be a dict with keys {sorted(DEFAULT_NET_ARCH)} (body and head sizes of actor and critic), "
-            f"e.g. {DEFAULT_NET_ARCH}; got {net_arch!r}"
+            "net_arch must be a list of layer sizes (SB3's form, e.g. [400, 300]), a dict(pi=[...], qf=[...]) (SB3's), "
+            f"or a dict with keys {list(SOUP_NET_ARCH_KEYS)} (SOUP's bodies and heads, e.g. {DEFAULT_NET_ARCH}); "
+            f"got {net_arch!r}"
         )
-    unknown = set(net_arch) - set(DEFAULT_NET_ARCH)
+    sb3_keys = {"pi", "qf"}
+    if set(net_arch) & sb3_keys:
+        if set(net_arch) != sb3_keys:
+            raise ValueError(
+                f"net_arch in SB3's dict form needs the keys ['pi', 'qf'] and no other (SOUP's form takes "
+                f"{list(SOUP_NET_ARCH_KEYS)}), got keys {sorted(net_arch)}"
+            )
+        pi_body, pi_head = _split_hidden_layers(_layer_sizes("net_arch['pi']", net_arch["pi"], [400, 300]))
+        qf_body, qf_head = _split_hidden_layers(_layer_sizes("net_arch['qf']", net_arch["qf"], [400, 300]))
+        return dict(pi_body=pi_body, pi_head=pi_head, qf_body=qf_body, qf_head=qf_head, qf_action_layer=0)
+    unknown = set(net_arch) - set(SOUP_NET_ARCH_KEYS)
     if unknown:
-        raise ValueError(f"net_arch has unknown keys {sorted(unknown)}; accepted keys: {sorted(DEFAULT_NET_ARCH)}")
-    arch = {}
-    for key, default in DEFAULT_NET_ARCH.items():
-        sizes = net_arch.get(key, default)
-        valid = isinstance(sizes, (list, tuple)) and all(
-            isinstance(size, (int, np.integer)) and not isinstance(size, (bool, np.bool_)) and size > 0 for size in sizes
+        raise ValueError(
+            f"net_arch has unknown keys {sorted(unknown)}; accepted keys: {list(SOUP_NET_ARCH_KEYS)} (SOUP's form), or "
+            "['pi', 'qf'] (SB3's dict form), or a list of layer sizes (SB3's)"
         )
-        if not valid:
-            raise ValueError(f"net_arch[{key!r}] must be a list of positive ints (layer sizes), e.g. {default}; got {sizes!r}")
-        arch[key] = [int(size) for size in sizes]
+    arch: dict[str, Any] = {}
+    for key, default in DEFAULT_NET_ARCH.items():
+        arch[key] = _layer_sizes(f"net_arch[{key!r}]", net_arch.get(key, default), default)
+    action_layer = net_arch.get("qf_action_layer", DEFAULT_ACTION_LAYER)
+    is_int = isinstance(action_layer, (int, np.integer)) and not isinstance(action_layer, (bool, np.bool_))
+    if not is_int or action_layer not in (0, 1):
+        raise ValueError(
+            "net_arch['qf_action_layer'] must be 0 (the action joins the critic at its input, as in SB3) or 1 (at its "
+            f"second body layer, the paper's DDPG critic), got {action_layer!r}"
+        )
+    if action_layer == 1 and len(arch["qf_body"]) < 2:
+        raise ValueError(
+            f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {arch['qf_body']}; "
+            "with net_arch['qf_action_layer']=0 the action joins at the input (SB3's critic) and any body goes"
+        )
+    arch["qf_action_layer"] = int(action_layer)
     return arch
 
 
@@ -94,6 +153,25 @@ def e_actor(candidates: th.Tensor, e_q: th.Tensor) -> tuple[th.Tensor, th.Tensor
     return candidates[chosen, th.arange(candidates.shape[1], device=candidates.device)], chosen
 
 
+def check_n_critics(n_critics: Any, n_critic_heads: int) -> None:
+    """
+    SB3's ``n_critics`` (TD3Policy, SACPolicy) in SOUP: each critic head is one critic, as ``n_critics=1`` makes in SB3,
+    and the number of critics is ``n_critic_heads``. 1 is accepted silently; more are ignored with a warning.
+
+    :param n_critics: what the user passed in ``policy_kwargs``
+    :param n_critic_heads: the policy's critic heads
+    """
+    n_critics = check("n_critics", n_critics)
+    if n_critics > 1:
+        warnings.warn(
+            f"policy_kwargs n_critics={n_critics} is ignored: SOUP's critics are its {n_critic_heads} critic heads "
+            "(n_critic_heads, each one critic as SB3's n_critics=1 builds); for TD3's clipped double Q use "
+            "target_q='min_pair' (the smaller of a head's target and another head's)",
+            UserWarning,
+            stacklevel=4,
+        )
+
+
 def check_policy(
     policy_class: Any, policy_kwargs: dict[str, Any], observation_space: spaces.Space, aliases: list[str]
 ) -> None:
@@ -122,12 +200,15 @@ def check_policy(
     default_extractor = accepted["features_extractor_class"].default if "features_extractor_class" in accepted else None
     extractor = policy_kwargs.get("features_extractor_class", default_extractor)
     normalized_image = (policy_kwargs.get("features_extractor_kwargs") or {}).get("normalized_image", False)
+    if not policy_kwargs.get("normalize_images", True) and isinstance(extractor, type):
+        # as SB3's BasePolicy: with normalize_images=False, NatureCNN and CombinedExtractor take float images as they are
+        normalized_image = normalized_image or issubclass(extractor, (NatureCNN, CombinedExtractor))
     if extractor is NatureCNN and not is_image_space(
         observation_space, check_channels=False, normalized_image=normalized_image
     ):
         raise ValueError(
             "NatureCNN (CnnPolicy's features extractor) takes image observations: a Box of shape (C, H, W) or (H, W, C), "
-            "uint8 in [0, 255] (or float with features_extractor_kwargs=dict(normalized_image=True)), "
+            "uint8 in [0, 255] (or float, already normalised, with normalize_images=False), "
             f"got {observation_space}; use 'MlpPolicy' (or 'MultiInputPolicy' for Dict observations, whose image keys get "
             "a NatureCNN)"
         )
@@ -192,8 +273,10 @@ class SOUPPolicy(BasePolicy):
     :param observation_space: Observation space
     :param action_space: Action space (Box)
     :param lr_schedule: Learning rate schedule (could be constant)
-    :param net_arch: body and head sizes: ``dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])``
-        (the paper's, default); missing keys take the default
+    :param net_arch: body and head sizes: SOUP's ``dict(pi_body=[256], pi_head=[128], qf_body=[256, 256],
+        qf_head=[128])`` (the paper's, default; missing keys take the default), or SB3's forms, a list of hidden layers
+        (``[400, 300]``) or ``dict(pi=[...], qf=[...])``, whose last hidden layer is each head's and the others the shared
+        body (see :func:`parse_net_arch`)
     :param activation_fn: Activation function (LeakyReLU, as in the paper)
     :param n_actor_heads: number of actor heads
     :param n_critic_heads: number of critic heads
@@ -209,6 +292,9 @@ class SOUPPolicy(BasePolicy):
         network, as SB3's ``share_features_extractor``: the actor's loss trains it (the critic and the confidence
         network read its features without gradient) and the actor's soft update moves its target. False (the default,
         as SB3's TD3): each network has its own, trained by its own loss
+    :param n_critics: SB3's number of critic networks (TD3Policy's argument): SOUP's critics are its ``n_critic_heads``,
+        each head one critic as SB3's ``n_critics=1`` builds; 1 is accepted, more warn and are ignored (TD3's clipped
+        double Q across the heads: SOUP's ``target_q="min_pair"``)
     """
 
     actor: EnsembleActor
@@ -222,7 +308,7 @@ class SOUPPolicy(BasePolicy):
         observation_space: spaces.Space,
         action_space: spaces.Box,
         lr_schedule: Schedule,
-        net_arch: dict[str, list[int]] | None = None,
+        net_arch: NetArch | None = None,
         activation_fn: type[nn.Module] = nn.LeakyReLU,
         n_actor_heads: int = 5,
         n_critic_heads: int = 5,
@@ -234,6 +320,7 @@ class SOUPPolicy(BasePolicy):
         optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
         share_features_extractor: bool = False,
+        n_critics: int = 1,
     ):
         super().__init__(
             observation_space,
@@ -253,6 +340,7 @@ class SOUPPolicy(BasePolicy):
                 f"got {activation_fn!r}"
             )
         self.net_arch = parse_net_arch(net_arch)
+        check_n_critics(n_critics, n_critic_heads)
         self.activation_fn = activation_fn
         self.n_actor_heads = n_actor_heads
         self.n_critic_heads = n_critic_heads
@@ -318,6 +406,7 @@ class SOUPPolicy(BasePolicy):
             self.activation_fn,
             self.normalize_images,
             share_features_extractor=features_extractor is not None,
+            action_layer=self.net_arch["qf_action_layer"],
         ).to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
@@ -491,7 +580,7 @@ class CnnPolicy(SOUPPolicy):
         observation_space: spaces.Space,
         action_space: spaces.Box,
         lr_schedule: Schedule,
-        net_arch: dict[str, list[int]] | None = None,
+        net_arch: NetArch | None = None,
         activation_fn: type[nn.Module] = nn.LeakyReLU,
         n_actor_heads: int = 5,
         n_critic_heads: int = 5,
@@ -503,6 +592,7 @@ class CnnPolicy(SOUPPolicy):
         optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
         share_features_extractor: bool = False,
+        n_critics: int = 1,
     ):
         super().__init__(
             observation_space,
@@ -520,6 +610,7 @@ class CnnPolicy(SOUPPolicy):
             optimizer_class,
             optimizer_kwargs,
             share_features_extractor,
+            n_critics,
         )
 
 
@@ -534,7 +625,7 @@ class MultiInputPolicy(SOUPPolicy):
         observation_space: spaces.Dict,
         action_space: spaces.Box,
         lr_schedule: Schedule,
-        net_arch: dict[str, list[int]] | None = None,
+        net_arch: NetArch | None = None,
         activation_fn: type[nn.Module] = nn.LeakyReLU,
         n_actor_heads: int = 5,
         n_critic_heads: int = 5,
@@ -546,6 +637,7 @@ class MultiInputPolicy(SOUPPolicy):
         optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
         share_features_extractor: bool = False,
+        n_critics: int = 1,
     ):
         super().__init__(
             observation_space,
@@ -563,4 +655,5 @@ class MultiInputPolicy(SOUPPolicy):
             optimizer_class,
             optimizer_kwargs,
             share_features_extractor,
+            n_critics,
         )

@@ -43,6 +43,11 @@ __version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip(
 SAVE_FORMAT_VERSION = 2
 """Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
 parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
+# The built-in exploration noise's defaults: a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG
+DEFAULT_NOISE: dict[str, float] = dict(noise_std=0.1, noise_decay=1.0, noise_std_min=0.0)
+_NOT_GIVEN = object()
+# SOUP's arguments of its policy, passed by SOUP besides policy_kwargs (see SOUP._policy_arguments)
+_POLICY_ARGUMENTS = ("n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs")
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
 # Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
@@ -63,6 +68,25 @@ _STRUCTURAL_ARGUMENTS = (
 )
 
 
+def check_noise(action_noise: ActionNoise | None, noise_args: dict[str, float]) -> None:
+    """
+    One rule for the exploration noise: an ``action_noise`` replaces the built-in Gaussian noise (``noise_std``,
+    ``noise_decay``, ``noise_std_min``), as a TD3 or DDPG script expects; a warning when both were set.
+
+    :param action_noise: SOUP's ``action_noise``
+    :param noise_args: the built-in noise's arguments as given
+    """
+    changed = {name: value for name, value in noise_args.items() if value != DEFAULT_NOISE[name]}
+    if action_noise is not None and changed:
+        settings = ", ".join(f"{name}={value!r}" for name, value in changed.items())
+        warnings.warn(
+            f"action_noise={action_noise} replaces SOUP's built-in Gaussian noise: {settings} are unused. Pass one of them: "
+            "action_noise (SB3's noise, added to the E-action as TD3 adds it) or noise_std/noise_decay/noise_std_min",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 class SOUP(OffPolicyAlgorithm):
     """
     Self-Adaptive Double Bootstrapped DDPG (SOUP).
@@ -76,9 +100,11 @@ class SOUP(OffPolicyAlgorithm):
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: actor learning rate for Adam (SB3's TD3 and DDPG: 1e-3; the paper: 1e-4); it can be a
-        function of the current progress remaining (from 1 to 0)
-    :param critic_learning_rate: critic learning rate (the paper: 3e-4), float or schedule
+    :param learning_rate: learning rate for Adam, of the actor and (unless ``critic_learning_rate`` is given) the critic,
+        as in SB3 (SB3's TD3 and DDPG: 1e-3; the paper's actor: 1e-4); it can be a function of the current progress
+        remaining (from 1 to 0)
+    :param critic_learning_rate: the critic's own learning rate (float or schedule; the paper: 3e-4); None (default):
+        the critic follows ``learning_rate``, as every optimizer of SB3's TD3 and DDPG does
     :param buffer_size: size of the replay buffer
     :param learning_starts: how many steps of the model to collect transitions for before learning starts
         (uniformly random actions until then; SB3's default 100, the RL Zoo's MuJoCo entries 10000)
@@ -88,7 +114,9 @@ class SOUP(OffPolicyAlgorithm):
     :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
         like ``(5, "step")`` or ``(2, "episode")``.
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
-    :param action_noise: replaces the built-in decayed Gaussian exploration noise when given (SB3 ``ActionNoise``)
+    :param action_noise: an SB3 ``ActionNoise``, added to the E-action in the [-1, 1] scaled action space as SB3's TD3
+        and DDPG add it; when given it replaces the built-in Gaussian noise (``noise_std``, ``noise_decay`` and
+        ``noise_std_min`` are then unused, with a warning if they were set)
     :param replay_buffer_class: Replay buffer class to use: one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
         ``HerReplayBuffer`` (for instance), ``NStepReplayBuffer``, for which SOUP builds their bootstrapped versions
         (see :mod:`sb3_soup.buffers`: they store the masks), or a subclass of those. If ``None``, it will be
@@ -130,15 +158,17 @@ class SOUP(OffPolicyAlgorithm):
     :param target_policy_noise: std of the Gaussian noise added to the target actions (TD3's target policy smoothing;
         the paper: 0, none), in the [-1, 1] scaled action space
     :param target_noise_clip: limit of the absolute value of that noise
-    :param noise_std: initial std of the Gaussian exploration noise (in the [-1, 1] scaled action space; default 0.1
-        constant, the RL Zoo's N(0, 0.1) for TD3 and DDPG)
+    :param noise_std: initial std of the built-in Gaussian exploration noise (in the [-1, 1] scaled action space;
+        default 0.1 constant, the RL Zoo's N(0, 0.1) for TD3 and DDPG); unused when ``action_noise`` is given
     :param noise_decay: multiplicative decay of the noise std per environment step, in (0, 1] (1: constant)
     :param noise_std_min: the noise std never goes below this
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
-    :param policy_kwargs: additional arguments to be passed to the policy on creation (``net_arch``, ``activation_fn``...)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation (``net_arch`` in SOUP's or SB3's
+        forms, ``activation_fn``...; see :class:`SOUPPolicy`); SOUP's own (head counts, confidence) are its arguments,
+        so ``self.policy_kwargs`` stays what was passed, as SB3's ``load(..., policy_kwargs=...)`` expects
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
         debug messages
     :param seed: Seed for the pseudo random generators
@@ -163,7 +193,7 @@ class SOUP(OffPolicyAlgorithm):
         policy: str | type[SOUPPolicy],
         env: GymEnv | str,
         learning_rate: float | Schedule = 1e-3,
-        critic_learning_rate: float | Schedule = 1e-3,
+        critic_learning_rate: float | Schedule | None = None,
         buffer_size: int = 1_000_000,
         learning_starts: int = 100,
         batch_size: int = 256,
@@ -194,9 +224,9 @@ class SOUP(OffPolicyAlgorithm):
         policy_delay: int = 1,
         target_policy_noise: float = 0.0,
         target_noise_clip: float = 0.5,
-        noise_std: float = 0.1,
-        noise_decay: float = 1.0,
-        noise_std_min: float = 0.0,
+        noise_std: float = DEFAULT_NOISE["noise_std"],
+        noise_decay: float = DEFAULT_NOISE["noise_decay"],
+        noise_std_min: float = DEFAULT_NOISE["noise_std_min"],
         check_finite: bool = True,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -241,6 +271,7 @@ class SOUP(OffPolicyAlgorithm):
             policy_kwargs=policy_kwargs,
             seed=seed,
         )
+        check_noise(action_noise, {name: args[name] for name in DEFAULT_NOISE})
         super().__init__(
             policy,
             env,
@@ -295,20 +326,6 @@ class SOUP(OffPolicyAlgorithm):
         self._sb3_soup_format = SAVE_FORMAT_VERSION
         self._sb3_soup_version = __version__
 
-        self.policy_kwargs.update(
-            n_actor_heads=self.n_actor_heads,
-            n_critic_heads=self.n_critic_heads,
-            confidence=self.confidence,
-            confidence_kwargs=dict(
-                alpha=self.alpha,
-                decay=self.decay,
-                lr=self.confidence_lr,
-                temperature=self.temperature,
-                temperature_mode=self.temperature_mode,
-                baseline=self.confidence_baseline,
-                ucb_lambda=self.ucb_lambda,
-            ),
-        )
         # Per env: the head pair trained during its current episode (Algorithm 1, drawn at each episode start)
         self._active_pairs: np.ndarray | None = None
         # The selection made at the step being taken, until its rewards come back (for the confidence strategy)
@@ -346,8 +363,28 @@ class SOUP(OffPolicyAlgorithm):
             )
         return self.policy_aliases[policy_name]
 
+    def _policy_arguments(self) -> dict[str, Any]:
+        """SOUP's own arguments of its policy (head counts, confidence strategy), passed besides ``policy_kwargs``."""
+        return dict(
+            n_actor_heads=self.n_actor_heads,
+            n_critic_heads=self.n_critic_heads,
+            confidence=self.confidence,
+            confidence_kwargs=dict(
+                alpha=self.alpha,
+                decay=self.decay,
+                lr=self.confidence_lr,
+                temperature=self.temperature,
+                temperature_mode=self.temperature_mode,
+                baseline=self.confidence_baseline,
+                ucb_lambda=self.ucb_lambda,
+            ),
+        )
+
     def _setup_model(self) -> None:
-        check_policy(self.policy_class, self.policy_kwargs, self.observation_space, sorted(self.policy_aliases))
+        # files saved before 0.2.0a0's issue 18 kept SOUP's policy arguments in policy_kwargs: they are its attributes
+        user_kwargs = {key: value for key, value in self.policy_kwargs.items() if key not in _POLICY_ARGUMENTS}
+        policy_kwargs = {**user_kwargs, **self._policy_arguments()}
+        check_policy(self.policy_class, policy_kwargs, self.observation_space, sorted(self.policy_aliases))
         self.replay_buffer_class = bootstrapped_buffer_class(
             self.replay_buffer_class, self.observation_space, self.n_steps, self.gamma, self.replay_buffer_kwargs
         )
@@ -357,15 +394,25 @@ class SOUP(OffPolicyAlgorithm):
                 "a model with a HerReplayBuffer needs its env (it computes the rewards of the relabelled goals): "
                 "load it with SOUP.load(path, env=...)"
             )
-        with warnings.catch_warnings():
-            # SB3 warns that n_steps is ignored whenever the class is set, as it is now: bootstrapped_buffer_class warned
-            # when it was ignored indeed
-            warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored", category=UserWarning)
-            super()._setup_model()
+        # SB3 builds the policy from self.policy_kwargs, which stays what the user passed (SB3's load compares it)
+        self.policy_kwargs = policy_kwargs
+        try:
+            with warnings.catch_warnings():
+                # SB3 warns that n_steps is ignored whenever the class is set, as it is now: bootstrapped_buffer_class
+                # warned when it was ignored indeed
+                warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored", category=UserWarning)
+                super()._setup_model()
+        finally:
+            self.policy_kwargs = user_kwargs
         self._create_aliases()
-        self.critic_lr_schedule = _as_schedule(self.critic_learning_rate)
-        update_learning_rate(self.critic.optimizer, self.critic_lr_schedule(1))
+        # None: the critic follows learning_rate (self.lr_schedule, read at each training round, as SB3 reads it)
+        self.critic_lr_schedule = None if self.critic_learning_rate is None else _as_schedule(self.critic_learning_rate)
+        update_learning_rate(self.critic.optimizer, self._critic_lr_schedule()(1))
         self._update_noise_std()
+
+    def _critic_lr_schedule(self) -> Schedule:
+        """The critic's learning rate schedule: ``critic_learning_rate``'s, or ``learning_rate``'s when it is None."""
+        return self.lr_schedule if self.critic_lr_schedule is None else self.critic_lr_schedule
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
@@ -376,8 +423,12 @@ class SOUP(OffPolicyAlgorithm):
     # ----- acting (Algorithm 1) ---------------------------------------------------------------------------------
 
     def _update_noise_std(self) -> None:
-        """Gaussian noise std after ``num_timesteps`` env-steps: ``max(noise_std_min, noise_std * noise_decay ** t)``."""
-        self.current_noise_std = max(self.noise_std_min, self.noise_std * self.noise_decay**self.num_timesteps)
+        """
+        Gaussian noise std after ``num_timesteps`` env-steps: ``max(noise_std_min, noise_std * noise_decay ** t)``; 0
+        when an ``action_noise`` replaces the built-in noise (then ``predict(deterministic=False)`` adds none, as TD3's).
+        """
+        builtin = max(self.noise_std_min, self.noise_std * self.noise_decay**self.num_timesteps)
+        self.current_noise_std = builtin if self.action_noise is None else 0.0
         self.policy.current_noise_std = self.current_noise_std
 
     def _draw_active_pairs(self, envs: np.ndarray) -> None:
@@ -399,7 +450,10 @@ class SOUP(OffPolicyAlgorithm):
             check_selection(selection, type(self.policy.confidence).__name__, self.num_timesteps)
         self._stats.record(selection)
         self._last_selection = (obs_tensor, selection)
-        scaled_action = selection.actions.cpu().numpy()  # (n_envs, A) in [-1, 1]
+        action_shape = self.action_space.shape
+        assert action_shape is not None
+        # (n_envs, *action_shape) in [-1, 1], as SB3's predict shapes actions (the buffer stores them flat)
+        scaled_action = selection.actions.cpu().numpy().reshape((-1, *action_shape))
         if action_noise is not None:
             noise = action_noise()
         else:
@@ -440,7 +494,7 @@ class SOUP(OffPolicyAlgorithm):
         # Switch to train mode (this affects batch norm / dropout)
         self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer])
-        critic_lr = self.critic_lr_schedule(self._current_progress_remaining)
+        critic_lr = self._critic_lr_schedule()(self._current_progress_remaining)
         update_learning_rate(self.critic.optimizer, critic_lr)
 
         critic_losses, actor_losses = [], []
@@ -654,7 +708,15 @@ class SOUP(OffPolicyAlgorithm):
                 + "; create a new SOUP to use other values"
             )
         kwargs = check_arguments(**kwargs)
+        # compared with the loaded model's below: a file saved before 0.2.0a0's issue 18 stored SOUP's own policy
+        # arguments in policy_kwargs, which SB3 would compare (the loaded model's policy_kwargs are without them)
+        given_policy_kwargs = kwargs.pop("policy_kwargs", _NOT_GIVEN)
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        if given_policy_kwargs is not _NOT_GIVEN and given_policy_kwargs != model.policy_kwargs:
+            raise ValueError(  # SB3's message
+                "The specified policy kwargs do not equal the stored policy kwargs."
+                f"Stored kwargs: {model.policy_kwargs}, specified kwargs: {given_policy_kwargs}"
+            )
         model._sb3_soup_version = __version__  # from now on this version's model
         return model
 

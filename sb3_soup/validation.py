@@ -196,7 +196,7 @@ def _confidence(name: str, value: Any) -> Any:
 RULES: dict[str, Rule] = {
     # SOUP (SB3's off-policy arguments)
     "learning_rate": _learning_rate,
-    "critic_learning_rate": _learning_rate,
+    "critic_learning_rate": optional(_learning_rate, "the same as learning_rate"),
     "buffer_size": integer(1, "replay buffer size"),
     "learning_starts": integer(0, "steps of random actions before learning"),
     "batch_size": integer(1, "minibatch size"),
@@ -223,6 +223,7 @@ RULES: dict[str, Rule] = {
     "n_critic_heads": optional(integer(1, "number of critic heads"), "n_heads"),
     "mask_prob": number(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off"),
     "n_masks": integer(1, "the number of bootstrapped head pairs"),
+    "n_critics": integer(1, "SB3's number of critics; SOUP's critics are its n_critic_heads"),
     "train_heads": choice(TRAIN_HEADS, "which head pairs each gradient step trains"),
     "target_q": choice(TARGET_Q, "which target critic heads each head bootstraps from"),
     "policy_delay": integer(1, "critic updates per actor and target update"),

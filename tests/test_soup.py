@@ -198,7 +198,7 @@ def test_non_box_action_spaces_are_refused():
         (dict(train_heads="some"), "train_heads"),
         (dict(tau=0.0), "tau"),
         (dict(gamma=1.5), "gamma"),
-        (dict(policy_kwargs=dict(net_arch=[64, 64])), "net_arch"),
+        (dict(policy_kwargs=dict(net_arch="big")), "net_arch"),
         (dict(policy_kwargs=dict(net_arch=dict(qf_body=[64]))), "qf_body"),
         (dict(policy_kwargs=dict(net_arch=dict(pi=[64]))), "net_arch"),
         (dict(confidence="fixed", n_actor_heads=1, n_critic_heads=3, preset=None), None),
