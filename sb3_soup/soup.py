@@ -31,7 +31,6 @@ from sb3_soup.buffers import (
 from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
 from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
-from sb3_soup.losses import actor_loss, critic_loss, td_target
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
@@ -85,6 +84,18 @@ def check_noise(action_noise: ActionNoise | None, noise_args: dict[str, float]) 
             UserWarning,
             stacklevel=3,
         )
+
+
+def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
+    """
+    Mean of each head's values over the transitions its bootstrap mask keeps (Algorithm 1: "the i-th experience with
+    mask m_i^k = 0 is ignored"): ``sum_j m_j v_j / max(1, sum_j m_j)``, 0 for a head whose mask keeps none.
+
+    :param values: ``(H, B, 1)``
+    :param masks: ``(H, B, 1)``, 1.0 where head h sees transition b
+    :return: ``(H,)``
+    """
+    return ((masks * values).sum(dim=1) / masks.sum(dim=1).clamp(min=1)).squeeze(-1)
 
 
 class SOUP(OffPolicyAlgorithm):
@@ -497,13 +508,56 @@ class SOUP(OffPolicyAlgorithm):
         critic_lr = self._critic_lr_schedule()(self._current_progress_remaining)
         update_learning_rate(self.critic.optimizer, critic_lr)
 
+        # Shapes: P head pairs, H of them trained by a loss (one pair gives (B, ...), which broadcasts as (1, B, ...))
         critic_losses, actor_losses = [], []
         for _ in range(gradient_steps):
             self._n_updates += 1
             data: Samples = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr,assignment]
-            critic_value, actor_value = self._gradient_step(data)
-            critic_losses += critic_value
-            actor_losses += actor_value
+            critic_pairs, actor_pairs = self._training_pairs(data.masks)
+            if not critic_pairs:
+                continue  # this minibatch holds nothing for the heads to train
+            # The heads of the pairs trained: pair k is actor head k with critic head k (a single head serves every pair)
+            target_actor_heads, critic_heads = self.policy.actor_heads(critic_pairs), self.policy.critic_heads(critic_pairs)
+            # For n-step replay, discount factor is gamma**n_steps (when no early termination)
+            discounts = data.discounts if data.discounts is not None else self.gamma
+
+            with th.no_grad():
+                # Eq. 4, each pair from its own target heads: y = r + gamma * (1 - done) * Q'_k(s', mu'_k(s'))
+                next_actions = self.actor_target(data.next_observations, head=target_actor_heads.head_arg)  # (H or 1, B, A)
+                if self.target_policy_noise > 0:  # TD3's target policy smoothing
+                    noise = th.randn_like(next_actions) * self.target_policy_noise
+                    noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+                    next_actions = (next_actions + noise).clamp(-1.0, 1.0)
+                next_features = self.critic_target.body_features(data.next_observations, next_actions)  # (H or 1, B, F)
+                next_q = self.critic_target.heads(next_features, critic_heads.head_arg)  # (H, B, 1)
+                if self.target_q == "min_pair" and self.n_critic_heads > 1:  # TD3's clipped double Q across heads (REDQ)
+                    own = th.as_tensor(critic_heads.per_pair, device=self.device)  # (H,)
+                    others = (own + th.randint(1, self.n_critic_heads, own.shape, device=self.device)) % self.n_critic_heads
+                    next_q = th.minimum(next_q, self.critic_target.heads(next_features, others))  # (H, B, 1)
+                target_q = data.rewards + (1 - data.dones) * discounts * next_q  # (H, B, 1)
+
+            # Eq. 3, each critic head's squared error over the transitions its bootstrap mask keeps
+            current_q = self.critic(
+                data.observations, data.actions, head=critic_heads.head_arg, grad_scale=critic_heads.scale
+            )  # (H, B, 1)
+            critic_masks = data.masks[:, critic_pairs].T.unsqueeze(-1).float()  # (H, B, 1), 1.0 where pair h sees transition b
+            critic_loss = masked_mean((target_q - current_q) ** 2, critic_masks)  # (H,)
+            critic_losses.append(self._optimize(self.critic, critic_loss, critic_heads, critic_pairs, "critic_loss"))
+
+            # Delayed policy updates
+            if self._n_updates % self.policy_delay == 0 and actor_pairs:
+                # Eq. 5 as a loss (its gradient is the deterministic policy gradient): -Q_k(s, mu_k(s)), masked
+                actor_heads, scoring_heads = self.policy.actor_heads(actor_pairs), self.policy.critic_heads(actor_pairs)
+                actions_pi = self.actor(
+                    data.observations, head=actor_heads.head_arg, grad_scale=actor_heads.scale
+                )  # (H, B, A)
+                q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.head_arg)  # (H, B, 1)
+                actor_masks = data.masks[:, actor_pairs].T.unsqueeze(-1).float()  # (H, B, 1)
+                actor_loss = -masked_mean(q_pi, actor_masks)  # (H,)
+                actor_losses.append(self._optimize(self.actor, actor_loss, actor_heads, actor_pairs, "actor_loss"))
+                # Eq. 6: Polyak update of the target networks' bodies and of the heads trained
+                soft_update(self.actor, self.actor_target, self.tau, actor_heads.rows)
+                soft_update(self.critic, self.critic_target, self.tau, critic_heads.rows)
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_learning_rate", critic_lr)
@@ -512,46 +566,14 @@ class SOUP(OffPolicyAlgorithm):
             self.logger.record("train/critic_loss", np.mean(critic_losses))
         if actor_losses:
             self.logger.record("train/actor_loss", np.mean(actor_losses))
+        # Eq. 8: the confidence strategy learns from what it observed since the last round
         strategy = self.policy.confidence
-        logs = check_update_logs(strategy, strategy.update())  # eq. 8, on what the strategy observed since the last round
+        logs = check_update_logs(strategy, strategy.update())
         if self.check_finite and "confidence_loss" in logs:
             name = type(strategy).__name__
             check_loss("confidence_loss", logs["confidence_loss"], lambda: f"the {name}", self._n_updates, self.num_timesteps)
         for key, value in logs.items():
             self.logger.record(f"train/{key}", value)
-
-    def _gradient_step(self, data: Samples) -> tuple[list[float], list[float]]:
-        """
-        One gradient step of the training scheme on a minibatch: the critic heads of the trained pairs (eqs. 3-4), then,
-        every ``policy_delay`` steps, their actor heads (eq. 5) and the soft update of the targets (eq. 6).
-
-        :return: the critic loss and the actor loss, each as a list of zero or one value
-        """
-        masks = data.masks.T.unsqueeze(-1).float()  # (P, B, 1)
-        critic_pairs, actor_pairs = self._training_pairs(masks)
-        if not critic_pairs:
-            return [], []  # this minibatch holds nothing for the heads to train
-
-        with th.no_grad():
-            next_q = self._next_q(data.next_observations, critic_pairs)  # (H, B, 1)
-            # n-step returns: the discount of the value bootstrapped from, gamma ** (steps summed in the reward), (B, 1)
-            discounts = self.gamma if data.discounts is None else data.discounts
-            target_q = td_target(data.rewards, data.dones, discounts, next_q)  # eq. 4
-        critic_heads = self.policy.critic_heads(critic_pairs)
-        current_q = self.critic(data.observations, data.actions, head=critic_heads.head_arg, grad_scale=critic_heads.scale)
-        per_pair = critic_loss(current_q, target_q, self._pair_masks(masks, critic_pairs))  # (H,), eq. 3
-        critic_value = self._optimize(self.critic, per_pair, critic_heads, critic_pairs, "critic_loss")
-        if self._n_updates % self.policy_delay != 0 or not actor_pairs:
-            return [critic_value], []
-
-        actor_heads, scoring_heads = self.policy.actor_heads(actor_pairs), self.policy.critic_heads(actor_pairs)
-        actions_pi = self.actor(data.observations, head=actor_heads.head_arg, grad_scale=actor_heads.scale)  # (H, B, A)
-        q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.head_arg)  # (H, B, 1)
-        per_pair = actor_loss(q_pi, self._pair_masks(masks, actor_pairs))  # (H,), eq. 5
-        actor_value = self._optimize(self.actor, per_pair, actor_heads, actor_pairs, "actor_loss")
-        soft_update(self.actor, self.actor_target, self.tau, actor_heads.rows)  # eq. 6
-        soft_update(self.critic, self.critic_target, self.tau, critic_heads.rows)
-        return [critic_value], [actor_value]
 
     def _training_pairs(self, masks: th.Tensor) -> tuple[list[int], list[int]]:
         """
@@ -560,46 +582,18 @@ class SOUP(OffPolicyAlgorithm):
         pair; "all_critics": every critic head, the active pair's actor head. A pair whose mask keeps none of the
         minibatch is left out.
 
-        :param masks: ``(P, B, 1)`` bootstrap masks of the minibatch
+        :param masks: ``(B, P)`` bootstrap masks of the minibatch
         """
         assert self._active_pairs is not None
         active = [int(self._active_pairs[(self._n_updates - 1) % len(self._active_pairs)])]
         every = list(range(self.policy.n_pairs))
         critic_pairs = active if self.train_heads == "active" else every
         actor_pairs = every if self.train_heads == "all" else active
-        has_data = masks.sum(dim=(1, 2)) > 0  # (P,)
+        has_data = masks.any(dim=0)  # (P,)
         if bool(has_data.all()):
             return critic_pairs, actor_pairs
         kept = has_data.tolist()
         return [pair for pair in critic_pairs if kept[pair]], [pair for pair in actor_pairs if kept[pair]]
-
-    @staticmethod
-    def _pair_masks(masks: th.Tensor, pairs: list[int]) -> th.Tensor:
-        """The masks ``(H, B, 1)`` of ``pairs`` among all pairs' ``(P, B, 1)``."""
-        return masks if len(pairs) == len(masks) else masks[pairs]
-
-    def _next_q(self, next_observations: PyTorchObs, pairs: list[int]) -> th.Tensor:
-        """
-        Each pair's value of the next state, which eq. 4 bootstraps from: its target critic head at its target actor head's
-        action (the paper). With ``target_policy_noise`` the action is smoothed with clipped Gaussian noise (TD3); with
-        ``target_q="min_pair"`` the value is the smaller of its own target critic head's and one random other's (the
-        clipped double Q of TD3 across the ensemble, as REDQ).
-
-        :return: ``(H, B, 1)``
-        """
-        actor_heads, critic_heads = self.policy.actor_heads(pairs), self.policy.critic_heads(pairs)
-        next_actions = self.actor_target(next_observations, head=actor_heads.head_arg)  # (H or 1, B, A)
-        if self.target_policy_noise > 0:
-            clip = self.target_noise_clip
-            noise = (th.randn_like(next_actions) * self.target_policy_noise).clamp(-clip, clip)
-            next_actions = (next_actions + noise).clamp(-1.0, 1.0)
-        features = self.critic_target.body_features(next_observations, next_actions)  # (H or 1, B, F)
-        next_q = self.critic_target.heads(features, critic_heads.head_arg)  # (H, B, 1)
-        if self.target_q == "min_pair" and self.n_critic_heads > 1:
-            own = th.as_tensor(critic_heads.per_pair, device=self.device)  # (H,)
-            others = (own + th.randint(1, self.n_critic_heads, own.shape, device=self.device)) % self.n_critic_heads
-            next_q = th.minimum(next_q, self.critic_target.heads(features, others))
-        return next_q
 
     def _optimize(
         self, model: EnsembleActor | EnsembleCritic, per_pair: th.Tensor, heads: TrainedHeads, pairs: list[int], name: str
@@ -613,13 +607,12 @@ class SOUP(OffPolicyAlgorithm):
         :return: the loss, checked to be finite (``check_finite``)
         """
         loss = per_pair.sum() * heads.n_heads / len(pairs)
-        optimizer = model.optimizer
-        optimizer.zero_grad()
+        model.optimizer.zero_grad()
         loss.backward(inputs=model.all_parameters())
-        if isinstance(optimizer, EnsembleAdam):
-            optimizer.step(head=heads.rows)
+        if isinstance(model.optimizer, EnsembleAdam):
+            model.optimizer.step(head=heads.rows)
         else:
-            optimizer.step()
+            model.optimizer.step()
         value = loss.item()
         if self.check_finite:
             check_loss(name, value, lambda: self.policy.describe_pairs(pairs, per_pair), self._n_updates, self.num_timesteps)

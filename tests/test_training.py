@@ -1,6 +1,7 @@
 """
-The training schemes on one minibatch (``SOUP._gradient_step``): Algorithm 1's active pair, all pairs, all critics;
-masked losses, per-head targets, pessimistic and smoothed targets, delayed actor updates; K = 1 is DDPG.
+The training schemes on one minibatch (one gradient step of ``SOUP.train``): Algorithm 1's active pair, all pairs, all
+critics; masked losses, per-head targets, pessimistic and smoothed targets, n-step discounts, delayed actor updates;
+K = 1 is DDPG.
 """
 
 import copy
@@ -8,6 +9,7 @@ import copy
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.logger import Logger
 
 from sb3_soup import SOUP, paper_settings
 from sb3_soup.buffers import BootstrappedReplayBufferSamples
@@ -20,7 +22,9 @@ def _model(**kwargs) -> SOUP:
     return SOUP("MlpPolicy", "Pendulum-v1", learning_starts=0, batch_size=BATCH, seed=0, **kwargs)
 
 
-def _batch(n_masks: int, masks: np.ndarray | None = None, seed: int = 0) -> BootstrappedReplayBufferSamples:
+def _batch(
+    n_masks: int, masks: np.ndarray | None = None, seed: int = 0, discounts: th.Tensor | None = None
+) -> BootstrappedReplayBufferSamples:
     rng = np.random.default_rng(seed)
 
     def tensor(*shape):
@@ -35,14 +39,22 @@ def _batch(n_masks: int, masks: np.ndarray | None = None, seed: int = 0) -> Boot
         dones=th.as_tensor(rng.random((BATCH, 1)) < 0.2, dtype=th.float32),
         rewards=tensor(BATCH, 1),
         masks=th.as_tensor(masks),
+        discounts=discounts,
     )
 
 
 def _step(model: SOUP, data: BootstrappedReplayBufferSamples, pair: int = 0) -> tuple[list[float], list[float]]:
-    """One gradient step of the model's scheme on ``data``, with ``pair`` as the episode's active head pair."""
+    """
+    One gradient step of the model's scheme (``SOUP.train``) on ``data``, with ``pair`` as the episode's active head pair.
+
+    :return: the critic loss and the actor loss it logged, each as a list of zero or one value
+    """
     model._active_pairs = np.array([pair])
-    model._n_updates += 1
-    return model._gradient_step(data)
+    model.replay_buffer.sample = lambda batch_size, env=None: data  # type: ignore[method-assign,union-attr]
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    model.train(gradient_steps=1, batch_size=BATCH)
+    logged = model.logger.name_to_value
+    return tuple([logged[key]] if key in logged else [] for key in ("train/critic_loss", "train/actor_loss"))  # type: ignore[return-value]
 
 
 def _snapshot(model: SOUP) -> dict[str, th.Tensor]:
@@ -171,43 +183,71 @@ def test_policy_delay_updates_the_actor_and_the_targets_every_nth_critic_update(
         assert _changed_heads(after, final, prefix) == [0, 1, 2], prefix
 
 
-def _next_q(model: SOUP, data: BootstrappedReplayBufferSamples, pairs: list[int]) -> th.Tensor:
+def _critic_losses(
+    model: SOUP, data: BootstrappedReplayBufferSamples, pair: int, discount: float | None = None
+) -> list[float]:
+    """
+    Eqs. 3-4 by hand for head pair ``pair`` (masks all ones): element i is the critic loss with the target
+    ``r + gamma (1 - done) min(Q'_pair, Q'_i)(s', mu'_pair(s'))``, so element ``pair`` is the paper's own target.
+    """
+    discount = model.gamma if discount is None else discount
     with th.no_grad():
-        return model._next_q(data.next_observations, pairs)
+        next_actions = model.actor_target(data.next_observations, pair)  # (B, A)
+        own = model.critic_target(data.next_observations, next_actions, pair)  # (B, 1)
+        current_q = model.critic(data.observations, data.actions, pair)  # (B, 1)
+        losses = []
+        for i in range(model.n_critic_heads):
+            next_q = th.minimum(own, model.critic_target(data.next_observations, next_actions, i))
+            target_q = data.rewards + discount * (1 - data.dones) * next_q
+            losses.append(float(((target_q - current_q) ** 2).mean()))
+    return losses
 
 
-def test_min_pair_target_is_the_smaller_of_the_own_and_another_target_head():
-    own_model, min_model = _model(), _model(target_q="min_pair")
-    min_model.policy.load_state_dict(own_model.policy.state_dict())
+@pytest.mark.parametrize("pair", [0, 1, 2])
+def test_own_target_is_the_pairs_own_target_heads(pair):
     data = _batch(3)
-    own = _next_q(own_model, data, [0, 1, 2])  # (3, B, 1)
+    expected = _critic_losses(_model(), data, pair)[pair]
+    (loss,), _ = _step(_model(), data, pair=pair)
+    assert loss == pytest.approx(expected, rel=1e-5)
+
+
+def test_n_step_discounts_replace_gamma_in_the_target():
+    """SB3's n-step buffers give each transition its discount (gamma ** n, or less where the episode ended)."""
+    discounts = th.full((BATCH, 1), 0.99**3)
+    discounts[:4] = 0.5
+    data = _batch(3, discounts=discounts)
+    (loss,), _ = _step(_model(), data, pair=1)
     with th.no_grad():
-        features = own_model.critic_target.body_features(
-            data.next_observations, own_model.actor_target(data.next_observations)
-        )
-        # every[i][k]: target critic head i's value of actor head k's target action, (B, 1)
-        every = [own_model.critic_target.heads(features, th.tensor([i, i, i])) for i in range(3)]
-    for _ in range(5):
-        pessimistic = _next_q(min_model, data, [0, 1, 2])
-        assert (pessimistic <= own).all()
-        for k in range(3):  # the minimum with one other critic head, the same for the whole minibatch
-            matches = [i for i in range(3) if i != k and th.allclose(pessimistic[k], th.minimum(own[k], every[i][k]))]
-            assert matches, k
-    one_head = _model(n_heads=1, preset="ddpg", target_q="min_pair")  # nothing to take the minimum with: own
-    one_head.policy.load_state_dict(_model(n_heads=1, preset="ddpg").policy.state_dict())
-    th.testing.assert_close(_next_q(one_head, _batch(1), [0]), _next_q(_model(n_heads=1, preset="ddpg"), _batch(1), [0]))
+        model = _model()
+        next_q = model.critic_target(data.next_observations, model.actor_target(data.next_observations, 1), 1)
+        target_q = data.rewards + discounts * (1 - data.dones) * next_q
+        expected = float(((target_q - model.critic(data.observations, data.actions, 1)) ** 2).mean())
+    assert loss == pytest.approx(expected, rel=1e-5)
+    assert loss != pytest.approx(_critic_losses(_model(), data, 1)[1], rel=1e-3)  # not gamma's
+
+
+@pytest.mark.parametrize("pair", [0, 1, 2])
+def test_min_pair_target_is_the_smaller_of_the_own_and_another_target_head(pair):
+    data = _batch(3)
+    candidates = _critic_losses(_model(), data, pair)
+    others = [loss for i, loss in enumerate(candidates) if i != pair]
+    for draw in range(4):  # the other head is drawn at random, one for the whole minibatch
+        th.manual_seed(draw)
+        (loss,), _ = _step(_model(target_q="min_pair"), data, pair=pair)
+        assert any(loss == pytest.approx(other, rel=1e-5) for other in others), (loss, candidates)
+    # with one critic head there is nothing to take the minimum with: the own target
+    (one_head,), _ = _step(_model(n_heads=1, preset="ddpg", target_q="min_pair"), _batch(1))
+    (own,), _ = _step(_model(n_heads=1, preset="ddpg"), _batch(1))
+    assert one_head == own
 
 
 def test_target_policy_smoothing_adds_clipped_noise_to_the_target_actions():
     data = _batch(3)
-    reference = _model()
-    plain = _next_q(reference, data, [0, 1, 2])
-    clipped_to_zero = _model(target_policy_noise=10.0, target_noise_clip=0.0)
-    clipped_to_zero.policy.load_state_dict(reference.policy.state_dict())
-    th.testing.assert_close(_next_q(clipped_to_zero, data, [0, 1, 2]), plain)
-    smoothed = _model(target_policy_noise=0.2)
-    smoothed.policy.load_state_dict(reference.policy.state_dict())
-    assert not th.allclose(_next_q(smoothed, data, [0, 1, 2]), plain)
+    (plain,), _ = _step(_model(), data, pair=1)
+    (clipped_to_zero,), _ = _step(_model(target_policy_noise=10.0, target_noise_clip=0.0), data, pair=1)
+    assert clipped_to_zero == plain
+    (smoothed,), _ = _step(_model(target_policy_noise=0.2), data, pair=1)
+    assert smoothed != pytest.approx(plain, rel=1e-6)
 
 
 def test_one_head_is_ddpg():
