@@ -399,6 +399,47 @@ def test_failing_and_killed_runs_are_reported_and_others_finish(tmp_path):
     assert "other settings" in run_one(dataclasses.asdict(changed))["error"]
 
 
+@pytest.fixture
+def sigterm_is_harmless():
+    """SIGTERM does nothing to this (test) process outside the code under test, which installs its own handler."""
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: None)
+    yield
+    signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="signals reach the main thread only")
+def test_sigterm_while_a_worker_starts_stops_that_worker_too(tmp_path, monkeypatch, sigterm_is_harmless):
+    """
+    SIGTERM arriving just after a worker process has started, before the scheduler has recorded it (the window is
+    wide on a first start: the forkserver imports torch first): that worker is stopped and collected like the others,
+    its run is reported interrupted, and no process trains it once run_grid has returned.
+    """
+    import psutil
+
+    from sb3_soup.experiments import parallel
+
+    (spec,) = build_grid(
+        "Pendulum-v1", tmp_path, models=["td3"], seeds=[0], timesteps=1_000_000, overrides=parse_overrides(FAST[:3])
+    )
+    started = []
+    worker = parallel._Worker
+
+    def signal_once_started(spec, process, connection):  # what LocalProcesses.submit records once the process runs
+        started.append(process.pid)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return worker(spec, process, connection)
+
+    monkeypatch.setattr(parallel, "_Worker", signal_once_started)
+    (result,) = run_grid([spec], workers=1, progress=False)
+    assert result["status"] == "interrupted"
+    (pid,) = started
+    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    assert busy_reason(spec.run_dir) is None  # no process holds the run
+    status_file = Path(spec.run_dir) / STATUS_FILE  # none when it stopped before its first step
+    assert not status_file.exists() or json.loads(status_file.read_text())["status"] == "interrupted"
+
+
 def test_a_run_being_trained_elsewhere_is_busy(tmp_path):
     (spec,) = build_grid(
         "Pendulum-v1", tmp_path, models=["td3"], seeds=[0], timesteps=100, overrides=parse_overrides(FAST[:3])

@@ -6,9 +6,15 @@ Command line of the experiment runner.
     python -m sb3_soup.experiments report runs/hopper
     python -m sb3_soup.experiments report runs/hopper --suite confidence
     python -m sb3_soup.experiments trap runs/hopper --suite models
+    python -m sb3_soup.experiments screen run --root runs/screen --models td3_zoo,ddpg_zoo,sac_zoo,soup_defaults
+    python -m sb3_soup.experiments screen run --root runs/screen --name soup_allcritics_d2 --seeds 3 \
+        --hyperparams train_heads=all_critics policy_delay=2
+    python -m sb3_soup.experiments screen report runs/screen --partial --to runs/screen-report
 
 Suites run into the same folder share the runs they have in common (the confidence suite's ``none`` and ``adaptive``
-are the models suite's ``dbddpg`` and ``soup``): the second command trains only the runs that are new.
+are the models suite's ``dbddpg`` and ``soup``): the second command trains only the runs that are new. The screening
+suite (``screen``) trains models on a fixed list of tasks (:data:`~sb3_soup.experiments.grid.SCREEN_TASKS`), one
+experiment folder per task under its root, and reports their scores normalised between a random policy and TD3.
 """
 
 from __future__ import annotations
@@ -18,8 +24,19 @@ import sys
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-from sb3_soup.experiments.grid import SUITES, VARIANTS, build_grid, parse_overrides, parse_seeds
+from sb3_soup.experiments.grid import (
+    SCREEN_BASELINES,
+    SCREEN_SEEDS,
+    SCREEN_TASKS,
+    SUITES,
+    VARIANTS,
+    build_grid,
+    build_screen,
+    parse_overrides,
+    parse_seeds,
+)
 
 
 def _csv(text: str) -> list[str]:
@@ -31,7 +48,7 @@ def _ints(text: str) -> list[int]:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    """:return: the parser of ``run``, ``report`` and ``trap``"""
+    """:return: the parser of ``run``, ``report``, ``trap`` and ``screen``"""
     parser = argparse.ArgumentParser(
         prog="python -m sb3_soup.experiments", description="Reproduce the SOUP paper's comparisons."
     )
@@ -127,7 +144,60 @@ def make_parser() -> argparse.ArgumentParser:
         "--final-fraction", type=float, default=0.2, help="the last part of each run whose mean return is shown (default: 0.2)"
     )
     trap.add_argument("--to", dest="report_dir", help="write trap.md and trap.json here (default: OUT, or OUT/report-SUITE)")
+    _add_screen_parser(commands)
     return parser
+
+
+def _add_screen_parser(commands: Any) -> None:
+    """``screen run``, ``screen report`` and ``screen tasks``."""
+    tasks = ", ".join(task.env_id for task in SCREEN_TASKS)
+    screen = commands.add_parser(
+        "screen",
+        help="the screening suite: models on a fixed task list, scores normalised between random (0) and TD3 (1)",
+        description=f"The screening suite's tasks: {tasks} (budgets and warm-ups: `screen tasks`).",
+    )
+    actions = screen.add_subparsers(dest="screen_command", required=True)
+
+    run = actions.add_parser("run", help="train models on every task of the suite; resumable (runs already done are reused)")
+    run.add_argument("--root", required=True, help="the screen's folder: one experiment folder per task, ROOT/ENV")
+    run.add_argument(
+        "--models",
+        type=_csv,
+        help=f"variants, comma-separated (default: soup_defaults; the baselines: {','.join(SCREEN_BASELINES)})",
+    )
+    run.add_argument(
+        "--name",
+        help="store the runs as this model: a candidate, one named setting of one variant (default soup_defaults) given "
+        "by --hyperparams",
+    )
+    run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
+    run.add_argument(
+        "--seeds", type=parse_seeds, default=list(range(SCREEN_SEEDS)), help=f"a count or a list (default: {SCREEN_SEEDS})"
+    )
+    run.add_argument("--tasks", type=_csv, help="narrow the suite to these env ids, comma-separated")
+    run.add_argument("--workers", type=int, help="parallel runs (default: number of cores available)")
+    run.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
+    run.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
+    run.add_argument("--hyperparams-file", help="RL-Zoo style YAML for SOUP's models (default: hyperparams/soup.yml)")
+    run.add_argument("--ray-address", help="run as tasks on this Ray cluster (see `run --help`)")
+    run.add_argument("--no-progress", action="store_true", help="no progress bars or progress lines")
+
+    report = actions.add_parser("report", help="normalised scores per task and aggregated with rliable")
+    report.add_argument("root", help="the screen's folder (only read)")
+    report.add_argument("--to", dest="report_dir", help="write the report files here (default: ROOT/report)")
+    report.add_argument(
+        "--partial",
+        action="store_true",
+        help="aggregate every model over the tasks it has complete (marked); default: only models complete on all tasks",
+    )
+    report.add_argument("--tasks", type=_csv, help="narrow the suite to these env ids, comma-separated")
+    report.add_argument("--models", type=_csv, help="report these models only (folder names), comma-separated")
+    report.add_argument(
+        "--seeds", type=parse_seeds, help="the seeds every model should have (default: per model, those it has on any task)"
+    )
+    report.add_argument("--reps", type=int, default=10_000, help="bootstrap resamples of the intervals (default: 10000)")
+
+    actions.add_parser("tasks", help="the suite's tasks, budgets and warm-ups")
 
 
 def _length_range(text: str) -> tuple[int, int]:
@@ -137,16 +207,12 @@ def _length_range(text: str) -> tuple[int, int]:
     return int(parts[0]), int(parts[1])
 
 
-def run_command(args: argparse.Namespace) -> int:
+def run_specs(args: argparse.Namespace) -> list[Any]:
     """
     :param args: parsed ``run`` arguments
-    :return: exit status: 0 when every run finished, 1 when some failed, 2 when some are not finished yet
-        (interrupted, or busy: being trained by another ``run`` command)
+    :return: the runs they ask for
     """
-    from sb3_soup.experiments.parallel import run_grid
-    from sb3_soup.experiments.report import write_grid
-
-    specs = build_grid(
+    return build_grid(
         args.env,
         args.out,
         suite=args.suite,
@@ -162,9 +228,31 @@ def run_command(args: argparse.Namespace) -> int:
         eval_episodes=args.eval_episodes,
         name=args.name,
     )
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """
+    :param args: parsed ``run`` arguments
+    :return: exit status: 0 when every run finished, 1 when some failed, 2 when some are not finished yet
+        (interrupted, or busy: being trained by another ``run`` command)
+    """
+    from sb3_soup.experiments.parallel import run_grid
+    from sb3_soup.experiments.report import write_grid
+
+    specs = run_specs(args)
     write_grid(args.out, specs, args.suite, args.heads)
     print(f"{len(specs)} runs of {specs[0].timesteps} steps -> {args.out}", file=sys.stderr)
     results = run_grid(specs, args.workers, progress=not args.no_progress, ray_address=args.ray_address or None)
+    return _summarise(results)
+
+
+def _summarise(results: Sequence[dict[str, Any]]) -> int:
+    """
+    Print a grid's results.
+
+    :param results: :func:`~sb3_soup.experiments.parallel.run_grid`'s
+    :return: the exit status of ``run``
+    """
     counts = Counter(result["status"] for result in results)
     print("Summary: " + ", ".join(f"{count} {status}" for status, count in sorted(counts.items())))
     for result in results:
@@ -240,13 +328,69 @@ def trap_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def screen_specs(args: argparse.Namespace) -> list[Any]:
+    """
+    :param args: parsed ``screen run`` arguments
+    :return: the runs they ask for
+    """
+    return build_screen(
+        args.root,
+        models=args.models,
+        seeds=args.seeds,
+        tasks=args.tasks,
+        overrides=parse_overrides(args.hyperparams),
+        name=args.name,
+        hyperparams_file=args.hyperparams_file,
+        checkpoint_freq=args.checkpoint_freq,
+        stop_after=args.stop_after,
+    )
+
+
+def screen_command(args: argparse.Namespace) -> int:
+    """
+    :param args: parsed ``screen`` arguments
+    :return: exit status (``screen run``: as ``run``'s)
+    """
+    from sb3_soup.experiments.grid import SCREEN_SUITE, screen_tasks
+
+    if args.screen_command == "tasks":
+        print("| Task | Budget (steps) | Warm-up (learning_starts) |\n|---|---|---|")
+        for task in SCREEN_TASKS:
+            print(f"| {task.env_id} | {task.timesteps} | {task.learning_starts} |")
+        return 0
+    if args.screen_command == "report":
+        from sb3_soup.experiments.screen import REPORT_FILE, screen_report
+
+        data = screen_report(
+            args.root, args.report_dir, tasks=args.tasks, models=args.models, seeds=args.seeds, partial=args.partial,
+            reps=args.reps,
+        )  # fmt: skip
+        print((Path(data["report_dir"]) / REPORT_FILE).read_text())
+        print("Wrote " + ", ".join(data["files"]) + f" in {data['report_dir']}")
+        return 0
+
+    from sb3_soup.experiments.parallel import run_grid
+    from sb3_soup.experiments.report import write_grid
+    from sb3_soup.experiments.screen import random_scores
+
+    specs = screen_specs(args)
+    tasks = screen_tasks(args.tasks)
+    for task in tasks:
+        write_grid(Path(args.root) / task.env_id, [spec for spec in specs if spec.env_id == task.env_id], SCREEN_SUITE)
+    random_scores([task.env_id for task in tasks], [args.root], args.root)  # the report's 0, computed once
+    models = sorted({spec.model for spec in specs})
+    print(f"{len(specs)} runs ({', '.join(models)} on {len(tasks)} tasks) -> {args.root}", file=sys.stderr)
+    results = run_grid(specs, args.workers, progress=not args.no_progress, ray_address=args.ray_address or None)
+    return _summarise(results)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     :return: exit status
     """
     args = make_parser().parse_args(argv)
-    commands = {"run": run_command, "report": report_command, "trap": trap_command}
+    commands = {"run": run_command, "report": report_command, "trap": trap_command, "screen": screen_command}
     return commands[args.command](args)
 
 

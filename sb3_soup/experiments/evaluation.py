@@ -4,7 +4,9 @@ Statistics of the deterministic evaluations (``evaluations.csv``) as peers publi
 stratified-bootstrap confidence interval, and the probability of improvement over a baseline with its interval.
 
 A run's score at a step is the mean return of its evaluation episodes at that step (SB3's ``EvalCallback``'s
-``mean_reward``). Scores are not normalised: each env is reported on its own.
+``mean_reward``). ``report`` does not normalise scores: each env is reported on its own. The screening suite's report
+(:mod:`sb3_soup.experiments.screen`) aggregates normalised scores over tasks: the functions below take a ``(runs,)``
+array (one task) or a ``(runs, tasks)`` matrix, with rliable's stratified bootstrap (runs resampled within each task).
 """
 
 from __future__ import annotations
@@ -41,6 +43,12 @@ def _rliable():  # type: ignore[no-untyped-def]
     return library, metrics
 
 
+def _matrix(scores: np.ndarray) -> np.ndarray:
+    """``(runs,)`` or ``(runs, tasks)`` scores as rliable's ``(runs, tasks)`` matrix."""
+    matrix = np.asarray(scores, dtype=float)
+    return matrix.reshape(-1, 1) if matrix.ndim == 1 else matrix
+
+
 def run_scores(evaluations: Sequence[tuple[np.ndarray, np.ndarray]], step: int) -> np.ndarray:
     """
     :param evaluations: per run, its ``(steps, mean returns)`` arrays
@@ -59,34 +67,54 @@ def run_scores(evaluations: Sequence[tuple[np.ndarray, np.ndarray]], step: int) 
 
 def iqm(scores: np.ndarray, reps: int = DEFAULT_REPS, seed: int = 0) -> Estimate:
     """
-    :param scores: ``(n_runs,)``
+    :param scores: ``(n_runs,)``, or ``(n_runs, n_tasks)``: the IQM of all its scores
     :param reps: bootstrap resamples
     :param seed: the bootstrap's seed (reports are reproducible)
     :return: the interquartile mean with its 95% stratified-bootstrap interval
     """
+    return aggregates(scores, ("iqm",), reps=reps, seed=seed)["iqm"]
+
+
+AGGREGATES = ("iqm", "mean", "median")
+
+
+def aggregates(
+    scores: np.ndarray, names: Sequence[str] = AGGREGATES, reps: int = DEFAULT_REPS, seed: int = 0
+) -> dict[str, Estimate]:
+    """
+    :param scores: ``(n_runs,)`` or ``(n_runs, n_tasks)``
+    :param names: which of :data:`AGGREGATES` (rliable's ``aggregate_iqm``, ``aggregate_mean``, ``aggregate_median``)
+    :param reps: bootstrap resamples (one bootstrap for all of them)
+    :param seed: the bootstrap's seed
+    :return: name -> the statistic with its 95% stratified-bootstrap interval
+    """
     rly, metrics = _rliable()
+    functions = [getattr(metrics, f"aggregate_{name}") for name in names]
     np.random.seed(seed)  # rliable's bootstrap draws from NumPy's global generator
     points, intervals = rly.get_interval_estimates(
-        {"x": np.asarray(scores, dtype=float).reshape(-1, 1)},
-        lambda matrix: np.array([metrics.aggregate_iqm(matrix)]),
+        {"x": _matrix(scores)},
+        lambda matrix: np.array([function(matrix) for function in functions]),
         reps=reps,
         confidence_interval_size=CONFIDENCE,
     )
-    return Estimate(float(points["x"][0]), float(intervals["x"][0, 0]), float(intervals["x"][1, 0]))
+    return {
+        name: Estimate(float(points["x"][index]), float(intervals["x"][0, index]), float(intervals["x"][1, index]))
+        for index, name in enumerate(names)
+    }
 
 
 def probability_of_improvement(scores: np.ndarray, baseline: np.ndarray, reps: int = DEFAULT_REPS, seed: int = 0) -> Estimate:
     """
-    :param scores: ``(n_runs,)`` of the model
-    :param baseline: ``(m_runs,)`` of the baseline
+    :param scores: ``(n_runs,)`` of the model, or ``(n_runs, n_tasks)``
+    :param baseline: ``(m_runs,)`` of the baseline, or ``(m_runs, n_tasks)`` (the same tasks)
     :param reps: bootstrap resamples
     :param seed: the bootstrap's seed
-    :return: P(a run of the model scores higher than a run of the baseline), ties counting half, with its 95%
-        stratified-bootstrap interval
+    :return: P(a run of the model scores higher than a run of the baseline on a task), ties counting half, averaged
+        over the tasks, with its 95% stratified-bootstrap interval
     """
     rly, metrics = _rliable()
     np.random.seed(seed)
-    pair = (np.asarray(scores, dtype=float).reshape(-1, 1), np.asarray(baseline, dtype=float).reshape(-1, 1))
+    pair = (_matrix(scores), _matrix(baseline))
     points, intervals = rly.get_interval_estimates(
         {"x,y": pair}, metrics.probability_of_improvement, reps=reps, confidence_interval_size=CONFIDENCE
     )
@@ -105,6 +133,25 @@ def iqm_curve(
     :return: the IQM with its interval at each step
     """
     return [iqm(run_scores(evaluations, step), reps=reps, seed=seed) for step in steps]
+
+
+def performance_profiles(
+    scores: dict[str, np.ndarray], taus: np.ndarray, reps: int = 2_000, seed: int = 0
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """
+    rliable's score distributions (performance profiles): per model, the fraction of its runs scoring above each tau.
+
+    :param scores: model -> ``(n_runs, n_tasks)``
+    :param taus: the thresholds
+    :param reps: bootstrap resamples of the bands
+    :param seed: the bootstrap's seed
+    :return: model -> ``(len(taus),)`` fractions, and model -> ``(2, len(taus))`` their 95% stratified-bootstrap band
+    """
+    rly, _ = _rliable()
+    np.random.seed(seed)
+    return rly.create_performance_profile(
+        {model: _matrix(matrix) for model, matrix in scores.items()}, taus, reps=reps, confidence_interval_size=CONFIDENCE
+    )
 
 
 def common_steps(evaluations: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[int]:

@@ -521,3 +521,120 @@ def _zoo_timesteps(env_id: str, path: str | os.PathLike | None, source: str) -> 
         entry = (yaml.safe_load(stream) or {}).get(env_id) or {}
     value = entry.get("n_timesteps")
     return float(value) if value is not None else None
+
+
+@dataclasses.dataclass(frozen=True)
+class ScreenTask:
+    """
+    One task of the screening suite (:data:`SCREEN_TASKS`).
+
+    :param env_id: the Gymnasium environment id (the task's experiment folder is ``ROOT/env_id``)
+    :param timesteps: the budget of every run on it: a run's score is its deterministic evaluation at this step
+    :param learning_starts: the random warm-up of every model on it, the baselines and SOUP's candidates alike
+    """
+
+    env_id: str
+    timesteps: int
+    learning_starts: int
+
+
+# The screening suite (issue 19): tasks where TD3 with the RL Zoo's settings learns within a short budget (one seed of
+# one model well under an hour of one core), balancing, reaching and locomotion plus classic control. Every model
+# trains on a task with its budget and warm-up, is evaluated every SCREEN_EVAL_FREQ steps on SCREEN_EVAL_EPISODES
+# deterministic episodes, and scores its final evaluation's mean return. The baselines' runs were started with
+# `run --env ENV --suite benchmark --models MODEL --seeds 5 --timesteps BUDGET --eval-freq 5000
+# --hyperparams MODEL:learning_starts=WARMUP --out ROOT/ENV`: build_screen builds exactly those runs, so it reuses them.
+SCREEN_TASKS: tuple[ScreenTask, ...] = (
+    ScreenTask("Pendulum-v1", 20_000, 5_000),
+    ScreenTask("InvertedPendulum-v4", 20_000, 5_000),
+    ScreenTask("InvertedDoublePendulum-v4", 20_000, 5_000),
+    ScreenTask("Reacher-v4", 30_000, 5_000),
+    ScreenTask("Swimmer-v4", 50_000, 10_000),
+    ScreenTask("HalfCheetah-v4", 50_000, 10_000),
+    ScreenTask("Hopper-v4", 50_000, 10_000),
+    ScreenTask("Walker2d-v4", 50_000, 10_000),
+)
+SCREEN_EVAL_FREQ = 5_000
+SCREEN_EVAL_EPISODES = 10
+SCREEN_SEEDS = 5
+# The peers, trained once per ROOT and reused by every later screen; the reference is normalised score 1 on each task.
+SCREEN_BASELINES = ("td3_zoo", "ddpg_zoo", "sac_zoo")
+SCREEN_REFERENCE = "td3_zoo"
+# The suite each task's grid.json records the runs under (as the baselines' `run --suite benchmark` did).
+SCREEN_SUITE = "benchmark"
+# Settings a task fixes for every model: a screen cannot override them.
+SCREEN_FIXED_KEYS = ("learning_starts",)
+
+
+def screen_tasks(env_ids: Sequence[str] | None = None) -> list[ScreenTask]:
+    """
+    :param env_ids: narrow the suite to these tasks (``None``: all of :data:`SCREEN_TASKS`, in its order)
+    :return: the tasks, in the order given
+    """
+    known = {task.env_id: task for task in SCREEN_TASKS}
+    if env_ids is None:
+        return list(SCREEN_TASKS)
+    unknown = [env_id for env_id in env_ids if env_id not in known]
+    if unknown:
+        raise ValueError(f"Unknown screen task(s) {unknown}; the suite has {list(known)}")
+    return [known[env_id] for env_id in env_ids]
+
+
+def build_screen(
+    root: str | os.PathLike,
+    models: Sequence[str] | None = None,
+    seeds: Sequence[int] = tuple(range(SCREEN_SEEDS)),
+    tasks: Sequence[str] | None = None,
+    overrides: dict[str, dict[str, Any]] | None = None,
+    name: str | None = None,
+    hyperparams_file: str | os.PathLike | None = None,
+    checkpoint_freq: int = 10_000,
+    stop_after: int | None = None,
+) -> list[RunSpec]:
+    """
+    The runs of a screen: each model on each task of the suite with the task's budget and warm-up (the
+    ``learning_starts`` of every model, see :class:`ScreenTask`), evaluated every :data:`SCREEN_EVAL_FREQ` steps on
+    :data:`SCREEN_EVAL_EPISODES` episodes, into ``root/<env_id>/<model>/seed_<n>``. A run is the one
+    ``run --env ENV --suite benchmark --models MODEL --timesteps BUDGET --eval-freq 5000
+    --hyperparams MODEL:learning_starts=WARMUP --out root/ENV`` builds, so the two share their runs.
+
+    :param root: the screen's folder (one experiment folder per task)
+    :param models: the variants (default: ``soup_defaults``); with ``name``, exactly one
+    :param seeds: the seeds
+    :param tasks: narrow the suite to these env ids
+    :param overrides: from :func:`parse_overrides`; they may not set what a task fixes (:data:`SCREEN_FIXED_KEYS`)
+    :param name: store the runs as this model (see :func:`build_grid`): a candidate, one named SOUP setting
+    :param hyperparams_file: see :func:`build_grid`
+    :param checkpoint_freq: see :class:`RunSpec`
+    :param stop_after: see :class:`RunSpec`
+    :return: the runs, task by task (then model, then seed)
+    """
+    names = list(models) if models else ["soup_defaults"]
+    overrides = overrides or {}
+    fixed = sorted({f"{target}:{key}" for target, values in overrides.items() for key in values if key in SCREEN_FIXED_KEYS})
+    if fixed:
+        raise ValueError(f"a screen task fixes {', '.join(SCREEN_FIXED_KEYS)} for every model; remove {fixed}")
+    specs = []
+    for task in screen_tasks(tasks):
+        warmup = {"learning_starts": task.learning_starts}
+        # "*" for SOUP's and the paper's models, the variant's name for the RL Zoo's (which take no "*" override)
+        task_overrides = {target: dict(values) for target, values in overrides.items()}
+        task_overrides["*"] = {**task_overrides.get("*", {}), **warmup}
+        for variant_name in names:
+            task_overrides[variant_name] = {**task_overrides.get(variant_name, {}), **warmup}
+        specs += build_grid(
+            task.env_id,
+            Path(root) / task.env_id,
+            suite=SCREEN_SUITE,
+            models=names,
+            seeds=seeds,
+            timesteps=task.timesteps,
+            overrides=task_overrides,
+            hyperparams_file=hyperparams_file,
+            checkpoint_freq=checkpoint_freq,
+            stop_after=stop_after,
+            eval_freq=SCREEN_EVAL_FREQ,
+            eval_episodes=SCREEN_EVAL_EPISODES,
+            name=name,
+        )
+    return specs

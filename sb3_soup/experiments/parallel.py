@@ -17,7 +17,6 @@ without starting a worker, and runs that another ``run`` command is training (se
 from __future__ import annotations
 
 import abc
-import contextlib
 import dataclasses
 import multiprocessing as mp
 import multiprocessing.connection
@@ -26,7 +25,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -280,24 +279,36 @@ class RayTasks(Scheduler):
             self.ray.shutdown()
 
 
-def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def _sigterm_stops_as_ctrl_c() -> Iterator[None]:
+class _StopSignals:
     """
-    SIGTERM (``kill PID``, and what stops a command run in the background, where SIGINT is ignored) stops as Ctrl-C
-    does. Signal handlers belong to the main thread: from another thread (a caller's), SIGTERM is left alone.
+    Count Ctrl-C (SIGINT) and SIGTERM (``kill PID``, and what stops a command run in the background, where SIGINT is
+    ignored) while a grid runs, for :func:`run_grid`'s loop to act on between two of its steps. The handlers only count:
+    an exception raised wherever the main thread happens to be could land inside a worker's start, after its process
+    was forked but before the scheduler recorded it (a window of seconds on a first start, while the forkserver imports
+    torch), and leave that worker training on, unsupervised, once the runner had stopped. SIGINT is counted only where
+    Python's default handler is in place (not where it is ignored, as in a background job, nor where a caller installed
+    another). Signal handlers belong to the main thread: from another thread (a caller's), none is installed.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+
+    def __init__(self) -> None:
+        self.received = 0
+        self._previous: dict[int, Any] = {}
+
+    def _count(self, signum: int, frame: Any) -> None:
+        self.received += 1
+
+    def __enter__(self) -> _StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                if signum == signal.SIGINT and signal.getsignal(signum) is not signal.default_int_handler:
+                    continue
+                self._previous[signum] = signal.signal(signum, self._count)
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
+        self._previous.clear()
 
 
 def _skip_finished(specs: Sequence[Any]) -> tuple[dict[str, dict[str, Any]], list[Any]]:
@@ -341,28 +352,30 @@ def run_grid(
     queue = list(todo)
     stopping = False
     try:
-        with _sigterm_stops_as_ctrl_c():
+        with _StopSignals() as signals:
             while queue or scheduler.running:
                 try:
-                    while queue and not stopping and scheduler.running < scheduler.capacity:
-                        scheduler.submit(queue.pop(0))
-                    if stopping:  # what never started stays to do
-                        for spec in queue:
-                            results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "interrupted", "step": 0}
-                            board.finish(spec.key, results[spec.key])
-                        queue.clear()
+                    while queue and not signals.received and scheduler.running < scheduler.capacity:
+                        scheduler.submit(queue[0])
+                        queue.pop(0)  # once submitted: a run whose submission was interrupted stays to do
                     ended = scheduler.wait(_POLL_SECONDS)
-                except KeyboardInterrupt:
-                    if stopping:
-                        raise
-                    stopping = True
-                    tqdm.write(scheduler.stop_message, file=sys.stderr)
-                    if not scheduler.stop():
-                        raise
-                    continue
+                except KeyboardInterrupt:  # from a SIGINT handler left in place (see _StopSignals)
+                    signals.received += 1
+                    ended = []
                 for spec, result in ended:
                     results[spec.key] = result
                     board.finish(spec.key, result)
+                if signals.received and not stopping:
+                    stopping = True
+                    tqdm.write(scheduler.stop_message, file=sys.stderr)
+                    for spec in queue:  # what never started stays to do
+                        results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "interrupted", "step": 0}
+                        board.finish(spec.key, results[spec.key])
+                    queue.clear()
+                    if not scheduler.stop():
+                        raise KeyboardInterrupt
+                if signals.received > 1:  # a second signal aborts: close() ends the runs still executing
+                    raise KeyboardInterrupt
                 board.poll()
     finally:
         scheduler.close()
