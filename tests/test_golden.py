@@ -9,11 +9,12 @@ the learning rate, and a near-tie between two candidates' E-Q values can make tw
 from there on. So the test compares, at tolerances measured across such settings (``python tests/golden.py
 --compare``, see its docstring; on issue 21, against the recording's AVX2 kernels: ``ATEN_CPU_CAPABILITY=default``,
 torch's kernels for any x86-64 CPU, and ``MKL_CBWR=COMPATIBLE``, MKL's; two threads and
-``MKL_ENABLE_INSTRUCTIONS=SSE4_2`` changed no bit):
+``MKL_ENABLE_INSTRUCTIONS=SSE4_2`` changed no bit, nor did the oldest SB3 and gymnasium the install admits, 2.3.2
+and 0.29.1):
 
 - exactly, over the whole run, what no rounding reaches: the random warm-up's actions, the bootstrap masks (NumPy
-  draws, as many per step whatever the values), the schedules ``train`` logs, and which heads training moved at all
-  (the heads of the pairs that were never trained keep their values bit for bit);
+  draws, as many per step whatever the values), the schedules ``train`` logs (to 1e-12), and which heads training
+  moved at all (the heads of the pairs that were never trained keep their values bit for bit);
 - closely (:data:`TIGHT`) the first :data:`TIGHT_STEPS` steps after the warm-up and their updates: the executed
   actions, every head's candidate action and E-Q value, the head chosen, every value ``train`` logs (the losses of
   eqs. 3, 5 and 8). A refactoring that changes the algorithm (a head's target, a mask, the critic that scores an
@@ -89,7 +90,8 @@ def test_golden_run_is_reproduced(name):
     # exactly: what no rounding reaches
     assert got["actions"][:WARMUP] == expected["actions"][:WARMUP], "the random warm-up"
     assert got["masks"] == expected["masks"], "the bootstrap masks"
-    assert {key: got["updates"][key] for key in SCHEDULES} == {key: expected["updates"][key] for key in SCHEDULES}
+    for key in SCHEDULES:  # Python floats: exact but for the last bit of a libm's pow (the noise's decay)
+        assert got["updates"][key] == pytest.approx(expected["updates"][key], rel=1e-12, abs=0), key
     assert {part: value > 0 for part, value in got["moved"].items()} == {
         part: value > 0 for part, value in expected["moved"].items()
     }, "which networks and heads training moved"
