@@ -4,20 +4,25 @@ Pendulum-v1 with fixed seeds and every setting given explicitly (so that a chang
 They were recorded before the redesign of the core (issue 13) and must stay the same: a change that alters them is
 named and justified in its commit, and the file re-recorded. ``tests/test_golden.py`` replays them.
 
-What a run records (:func:`run_case`): the actions it took, the bootstrap masks it drew, the head the ensemble chose
-at every step after the warm-up and by how much its E-Q value beat the runner-up, every value that ``train`` logs
-(the losses of every update, ...) and how far training moved each network. Not the bits of the parameters: another
-CPU, another thread count or another torch rounds differently, and training amplifies that (issue 21), so the test
-compares at tolerances measured across such settings (see ``tests/test_golden.py``).
+What a run records (:func:`run_case`): the actions it took, the bootstrap masks it drew, after the warm-up every
+actor head's candidate, its E-Q value and the head chosen, every value that ``train`` logs (the losses of every
+update, ...) and how far training moved each network's body and each of its heads. Not the bits of the parameters:
+another CPU, another BLAS path or another torch rounds differently, and training amplifies that (issue 21), so the
+test compares at tolerances measured across such settings (see ``tests/test_golden.py``).
 
-Record (all cases, or the ones named)::
+Re-record (all cases, or the ones named), from the repository's root, after a change meant to alter the runs (named
+and justified in its commit; see first with ``--compare`` how far it moved them)::
 
     python tests/golden.py [CASE ...]
 
-Measure how far a setting moves the runs from the recorded ones, e.g. another CPU's kernels or two threads::
+Measure how far a setting moves the runs from the recorded ones: for each case the horizon (how many steps after the
+warm-up the test compares) and, for each quantity, its largest deviation relative to its scale in the first
+``TIGHT_STEPS`` steps and in the rest (compare with the test's ``TIGHT`` and ``LOOSE``). Proxies for another machine:
+torch's kernels for another CPU (``ATEN_CPU_CAPABILITY=default``, or ``avx512`` where the CPU has it), MKL's code
+paths (``MKL_CBWR=COMPATIBLE``, ``AVX``...), torch threads::
 
     ATEN_CPU_CAPABILITY=default python tests/golden.py --compare
-    MKL_CBWR=COMPATIBLE python tests/golden.py --compare --threads 2
+    MKL_CBWR=COMPATIBLE python tests/golden.py --compare --threads 2 --save runs.json
 """
 
 import argparse

@@ -7,19 +7,23 @@ first forward pass differently, by about 1e-7, and training amplifies that (issu
 bursts, not gradually: Adam's normalised step turns the rounding noise of a near-zero gradient into a full step of
 the learning rate, and a near-tie between two candidates' E-Q values can make two machines execute different actions
 from there on. So the test compares, at tolerances measured across such settings (``python tests/golden.py
---compare``, see its docstring; measured on issue 21 with ``ATEN_CPU_CAPABILITY=default`` and ``MKL_CBWR=COMPATIBLE``
-/ ``AVX`` against the recording's AVX2 kernels, two threads, oneDNN's SSE4.1 path, oneDNN off):
+--compare``, see its docstring; on issue 21, against the recording's AVX2 kernels: ``ATEN_CPU_CAPABILITY=default``,
+torch's kernels for any x86-64 CPU, and ``MKL_CBWR=COMPATIBLE``, MKL's; two threads and
+``MKL_ENABLE_INSTRUCTIONS=SSE4_2`` changed no bit, nor did the oldest SB3 and gymnasium the install admits, 2.3.2
+and 0.29.1):
 
 - exactly, over the whole run, what no rounding reaches: the random warm-up's actions, the bootstrap masks (NumPy
-  draws, as many per step whatever the values), the schedules ``train`` logs, and which heads training moved at all
-  (the heads of the pairs that were never trained keep their values bit for bit);
+  draws, as many per step whatever the values), the schedules ``train`` logs (to 1e-12), and which heads training
+  moved at all (the heads of the pairs that were never trained keep their values bit for bit);
 - closely (:data:`TIGHT`) the first :data:`TIGHT_STEPS` steps after the warm-up and their updates: the executed
   actions, every head's candidate action and E-Q value, the head chosen, every value ``train`` logs (the losses of
   eqs. 3, 5 and 8). A refactoring that changes the algorithm (a head's target, a mask, the critic that scores an
   actor head, the selection) changes them from the first update on, by far more than rounding does;
 - loosely (:data:`LOOSE`) the rest of the run, up to the recorded run's horizon (:func:`golden.horizon`): the first
-  step whose choice a difference within the tolerance could flip; and, for a run compared to its end, how far
-  training moved each network's body and each of its heads.
+  step whose choice a difference within the tolerance could flip. The runs with one actor head have none and are
+  compared whole, with how far training moved each network's body and each of its heads; those with several meet one
+  (dbddpg and soup after 9 to 11 steps, multi_ddpg after 20, fixed and decayed after 28 and 70): their near-tied
+  candidates are why 300 steps cannot be compared whole on another machine.
 """
 
 import json
@@ -37,7 +41,8 @@ GOLDEN = json.loads(GOLDEN_FILE.read_text())
 TIGHT = 5e-5
 TIGHT_STEPS = 20
 # Over the rest of the run at most 8.1e-4 (ma_bddpg-active's actor loss with ATEN_CPU_CAPABILITY=default: bursts of
-# Adam steps of the learning rate's size), 5.1e-5 for the actions: a margin of 12 or more.
+# Adam steps of the learning rate's size), 7.1e-4 for how far a body or head moved, 5.1e-5 for the actions: a margin
+# of 12 or more. The changes of the algorithm tried on issue 21 moved the networks by 2e-2 to 1.1 more or less.
 LOOSE = 1e-2
 # Every case is compared over at least this many steps and updates (the K x K cases' horizons are 9 to 11)
 MIN_STEPS = 8
@@ -85,7 +90,8 @@ def test_golden_run_is_reproduced(name):
     # exactly: what no rounding reaches
     assert got["actions"][:WARMUP] == expected["actions"][:WARMUP], "the random warm-up"
     assert got["masks"] == expected["masks"], "the bootstrap masks"
-    assert {key: got["updates"][key] for key in SCHEDULES} == {key: expected["updates"][key] for key in SCHEDULES}
+    for key in SCHEDULES:  # Python floats: exact but for the last bit of a libm's pow (the noise's decay)
+        assert got["updates"][key] == pytest.approx(expected["updates"][key], rel=1e-12, abs=0), key
     assert {part: value > 0 for part, value in got["moved"].items()} == {
         part: value > 0 for part, value in expected["moved"].items()
     }, "which networks and heads training moved"
