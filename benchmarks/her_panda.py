@@ -111,7 +111,7 @@ def table(paths: list[str]) -> str:
             rates = {row["timesteps"]: row["success_rate"] for row in result["evaluations"]}
             cells = " | ".join(f"{rates[step]:.2f}" if step in rates else "-" for step in steps)
             lines.append(f"| {algo.upper()} + HER | {result['seed']} | {cells} | {result['wall_time_s']:.0f} |")
-        if results:
+        if len(results) > 1:
             rates_at = [[row["success_rate"] for res in results for row in res["evaluations"] if row["timesteps"] == step]
                         for step in steps]  # fmt: skip
             cells = " | ".join(f"**{statistics.fmean(rates):.2f}**" if rates else "-" for rates in rates_at)
