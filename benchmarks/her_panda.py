@@ -67,9 +67,9 @@ def run(algo: str, seed: int, timesteps: int, eval_freq: int, eval_episodes: int
     model = make_model(algo, env, seed)
     with tempfile.TemporaryDirectory() as log_path:  # EvalCallback keeps the success rates only with a log_path
         evaluations = EvalCallback(eval_env, eval_freq=eval_freq, n_eval_episodes=eval_episodes, log_path=log_path, verbose=0)
-        start = time.time()
+        start, start_cpu = time.time(), time.process_time()
         model.learn(timesteps, callback=evaluations)
-        wall_time = time.time() - start
+        wall_time, cpu_time = time.time() - start, time.process_time() - start_cpu
     rows = [
         dict(timesteps=int(step), success_rate=statistics.fmean(successes), mean_return=statistics.fmean(returns))
         for step, successes, returns in zip(
@@ -89,6 +89,7 @@ def run(algo: str, seed: int, timesteps: int, eval_freq: int, eval_episodes: int
         final_success_rate=rows[-1]["success_rate"] if rows else None,
         training_success_rate_last_100_episodes=statistics.fmean(training_success) if training_success else None,
         wall_time_s=round(wall_time, 1),
+        cpu_time_s=round(cpu_time, 1),  # of this process: the wall time also counts the machine's other load
         machine=dict(platform=platform.platform(), cpus=os.cpu_count(), torch_threads=1, python=sys.version.split()[0]),
     )
 
@@ -110,7 +111,7 @@ def table(paths: list[str]) -> str:
             rates = {row["timesteps"]: row["success_rate"] for row in result["evaluations"]}
             cells = " | ".join(f"{rates[step]:.2f}" if step in rates else "-" for step in steps)
             lines.append(f"| {algo.upper()} + HER | {result['seed']} | {cells} | {result['wall_time_s']:.0f} |")
-        if results:
+        if len(results) > 1:
             rates_at = [[row["success_rate"] for res in results for row in res["evaluations"] if row["timesteps"] == step]
                         for step in steps]  # fmt: skip
             cells = " | ".join(f"**{statistics.fmean(rates):.2f}**" if rates else "-" for rates in rates_at)
