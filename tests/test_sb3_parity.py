@@ -232,6 +232,19 @@ def test_matrix_shaped_actions_train_predict_and_view():  # SB3's test_action_sp
         assert view.actions.shape == (4, 2, 2) and view.candidates.shape == (4, 3, 2, 2)
 
 
+@pytest.mark.parametrize("net_arch", [[], [8, 8]])
+def test_onnx_export_of_matrix_actions_and_sb3_critics(tmp_path, net_arch):
+    ort = pytest.importorskip("onnxruntime")
+    from sb3_soup import export_onnx
+
+    model = SOUP("MlpPolicy", MatrixActionEnv(), n_heads=3, policy_kwargs=dict(net_arch=net_arch))
+    export_onnx(model, tmp_path / "model.onnx")
+    session = ort.InferenceSession(str(tmp_path / "model.onnx"), providers=["CPUExecutionProvider"])
+    obs = np.random.default_rng(0).uniform(-1, 1, (4, 3)).astype(np.float32)
+    (actions,) = session.run(None, {"obs": obs})
+    np.testing.assert_allclose(actions, model.predict(obs, deterministic=True)[0], atol=1e-5)
+
+
 @pytest.mark.parametrize("action_dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("dict_obs", [False, True])
 def test_float64_spaces(action_dtype, dict_obs):  # SB3's test_float64_action_space
