@@ -231,6 +231,21 @@ def test_report_on_a_screen_without_a_complete_model(hand_made, tmp_path):
 # ---------------------------------------------------------------- the command line
 
 
+def test_a_task_whose_reference_does_no_better_than_random_normalises_nothing(hand_made, tmp_path):
+    """Hopper's random policy made 1000, TD3's mean: a normalised score would divide by zero (or by a negative)."""
+    cache = hand_made / screen.RANDOM_SCORES_FILE
+    randoms = json.loads(cache.read_text())
+    randoms["Hopper-v4"]["mean"] = 1000.0
+    cache.write_text(json.dumps(randoms))
+    data = screen.screen_report(hand_made, tmp_path / "report", tasks=["Pendulum-v1", "Hopper-v4"], partial=True, reps=REPS)
+    assert data["runs"]["ddpg_zoo"]["Hopper-v4"]["normalised"] == {"0": None, "1": None}
+    assert data["runs"]["ddpg_zoo"]["Pendulum-v1"]["normalised"] == {"0": 0.5, "1": 1.0}  # the other task normalises
+    assert data["aggregate"]["ddpg_zoo"]["tasks"] == ["Pendulum-v1"]
+    text = (tmp_path / "report" / screen.REPORT_FILE).read_text()
+    assert "no better than the random policy: this task normalises nothing at this budget" in text
+    assert "- Hopper-v4: the reference (TD3 (RL Zoo), 1000.0) does no better than the random policy (1000.0)" in text
+
+
 def test_screen_command_runs_resumably_and_reports(tmp_path, capsys):
     root = tmp_path / "screen"
     command = ["screen", "run", "--root", str(root), "--models", "td3_zoo", "--seeds", "1", "--tasks", "Pendulum-v1",

@@ -272,11 +272,23 @@ class Screen:
         return [task.env_id for task in self.tasks]
 
     def normalise(self, env_id: str, score: float) -> float | None:
-        """:return: the score normalised between the random policy (0) and the reference (1); ``None`` without one"""
+        """
+        :return: the score normalised between the random policy (0) and the reference (1); ``None`` without a reference,
+            or with one that does no better than the random policy at the task's budget (see :meth:`unusable`)
+        """
         reference, random = self.references.get(env_id), self.random[env_id]["mean"]
-        if reference is None or reference["mean"] == random:
+        if reference is None or self.unusable(env_id):
             return None
         return (score - random) / (reference["mean"] - random)
+
+    def unusable(self, env_id: str) -> bool:
+        """
+        :return: whether the task's reference (its mean score) does no better than the random policy: 1 would then
+            mean random or worse, and the scale of the normalised scores would be meaningless, so the task normalises
+            nothing (its budget is too short for the reference to learn)
+        """
+        reference = self.references.get(env_id)
+        return reference is not None and reference["mean"] <= self.random[env_id]["mean"]
 
     def aggregate_tasks(self, model: str, partial: bool) -> list[str]:
         """:return: the tasks a model is aggregated over: complete for it, with a reference (complete, unless partial)"""
@@ -517,6 +529,8 @@ def _task_lines(screen: Screen) -> list[str]:
         if reference is not None:
             runs = f"{reference['runs']} run{'s' if reference['runs'] > 1 else ''}"
             ref_text = f"{reference['mean']:.1f} ({runs}{'' if reference['complete'] else ', incomplete'})"
+            if screen.unusable(task.env_id):
+                ref_text += ", no better than the random policy: this task normalises nothing at this budget"
         lines += [
             f"### {task.env_id} ({task.timesteps} steps, warm-up {task.learning_starts})",
             "",
@@ -553,6 +567,12 @@ def _missing_lines(screen: Screen) -> list[str]:
                 by_note.setdefault(note, []).append(seed)
             parts = [f"seed{'s' if len(seeds) > 1 else ''} {_seeds_text(seeds)}: {note}" for note, seeds in by_note.items()]
             lines.append(f"- `{model}` on {env_id}: " + "; ".join(parts))
+    for env_id in screen.env_ids:
+        if screen.unusable(env_id):
+            lines.append(
+                f"- {env_id}: the reference ({_reference_label(screen)}, {screen.references[env_id]['mean']:.1f}) does no "
+                f"better than the random policy ({screen.random[env_id]['mean']:.1f}): no normalised score, no aggregate"
+            )
     if len(lines) == 2:
         lines.append("Nothing: every model has a score for every seed on every task.")
     return lines
