@@ -67,9 +67,6 @@ def make_parser() -> argparse.ArgumentParser:
     run.add_argument("--seeds", type=parse_seeds, default=[0, 1, 2], help="a count (3 -> 0,1,2) or a list (1,5)")
     run.add_argument("--timesteps", type=int, help="steps per run (default: n_timesteps from soup.yml, else 100000)")
     run.add_argument("--out", required=True, help="experiment folder")
-    run.add_argument("--workers", type=int, help="parallel runs (default: number of cores available)")
-    run.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
-    run.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
     run.add_argument(
         "--eval-freq",
         type=int,
@@ -77,18 +74,13 @@ def make_parser() -> argparse.ArgumentParser:
         help="evaluate the deterministic policy every N steps, as SB3's EvalCallback (0: never; default: 10000)",
     )
     run.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default: 10)")
-    run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
-    run.add_argument(
-        "--hyperparams-file",
-        help="RL-Zoo style YAML for SOUP's models (default: hyperparams/soup_paper.yml for the paper's, soup.yml for "
-        "soup_defaults)",
+    _add_training_options(
+        run,
+        hyperparams_file="RL-Zoo style YAML for SOUP's models (default: hyperparams/soup_paper.yml for the paper's, "
+        "soup.yml for soup_defaults)",
+        ray_address="run as tasks on this Ray cluster ('auto', 'host:port', 'ray://host:10001', or 'local' for a private "
+        "one); --out must be on a filesystem shared by its nodes",
     )
-    run.add_argument(
-        "--ray-address",
-        help="run as tasks on this Ray cluster ('auto', 'host:port', 'ray://host:10001', or 'local' for a private one); "
-        "--out must be on a filesystem shared by its nodes",
-    )
-    run.add_argument("--no-progress", action="store_true", help="no progress bars or progress lines")
 
     report = commands.add_parser("report", help="Table 1 metrics, learning curves and confidence plots of a folder")
     report.add_argument("out", help="experiment folder")
@@ -148,6 +140,17 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_training_options(parser: argparse.ArgumentParser, hyperparams_file: str, ray_address: str) -> None:
+    """The options of ``run`` and ``screen run`` on how runs train (:func:`_run_options` passes them on)."""
+    parser.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
+    parser.add_argument("--hyperparams-file", help=hyperparams_file)
+    parser.add_argument("--workers", type=int, help="parallel runs (default: number of cores available)")
+    parser.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
+    parser.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
+    parser.add_argument("--ray-address", help=ray_address)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars or progress lines")
+
+
 def _add_screen_parser(commands: Any) -> None:
     """``screen run``, ``screen report`` and ``screen tasks``."""
     tasks = ", ".join(task.env_id for task in SCREEN_TASKS)
@@ -170,17 +173,15 @@ def _add_screen_parser(commands: Any) -> None:
         help="store the runs as this model: a candidate, one named setting of one variant (default soup_defaults) given "
         "by --hyperparams",
     )
-    run.add_argument("--hyperparams", nargs="*", default=[], metavar="[MODEL:]KEY=VALUE", help="override hyper-parameters")
     run.add_argument(
         "--seeds", type=parse_seeds, default=list(range(SCREEN_SEEDS)), help=f"a count or a list (default: {SCREEN_SEEDS})"
     )
     run.add_argument("--tasks", type=_csv, help="narrow the suite to these env ids, comma-separated")
-    run.add_argument("--workers", type=int, help="parallel runs (default: number of cores available)")
-    run.add_argument("--checkpoint-freq", type=int, default=10_000, help="checkpoint every N steps (0: only at stops)")
-    run.add_argument("--stop-after", type=int, help="stop each run after N new steps (resumable), e.g. for time slices")
-    run.add_argument("--hyperparams-file", help="RL-Zoo style YAML for SOUP's models (default: hyperparams/soup.yml)")
-    run.add_argument("--ray-address", help="run as tasks on this Ray cluster (see `run --help`)")
-    run.add_argument("--no-progress", action="store_true", help="no progress bars or progress lines")
+    _add_training_options(
+        run,
+        hyperparams_file="RL-Zoo style YAML for SOUP's models (default: hyperparams/soup.yml)",
+        ray_address="run as tasks on this Ray cluster (see `run --help`)",
+    )
 
     report = actions.add_parser("report", help="normalised scores per task and aggregated with rliable")
     report.add_argument("root", help="the screen's folder (only read)")
@@ -220,13 +221,20 @@ def run_specs(args: argparse.Namespace) -> list[Any]:
         heads=args.heads,
         seeds=args.seeds,
         timesteps=args.timesteps,
+        eval_freq=args.eval_freq,
+        eval_episodes=args.eval_episodes,
+        **_run_options(args),
+    )
+
+
+def _run_options(args: argparse.Namespace) -> dict[str, Any]:
+    """:return: the options ``run`` and ``screen run`` share, as the keyword arguments of their grid builders"""
+    return dict(
         overrides=parse_overrides(args.hyperparams),
+        name=args.name,
         hyperparams_file=args.hyperparams_file,
         checkpoint_freq=args.checkpoint_freq,
         stop_after=args.stop_after,
-        eval_freq=args.eval_freq,
-        eval_episodes=args.eval_episodes,
-        name=args.name,
     )
 
 
@@ -333,17 +341,7 @@ def screen_specs(args: argparse.Namespace) -> list[Any]:
     :param args: parsed ``screen run`` arguments
     :return: the runs they ask for
     """
-    return build_screen(
-        args.root,
-        models=args.models,
-        seeds=args.seeds,
-        tasks=args.tasks,
-        overrides=parse_overrides(args.hyperparams),
-        name=args.name,
-        hyperparams_file=args.hyperparams_file,
-        checkpoint_freq=args.checkpoint_freq,
-        stop_after=args.stop_after,
-    )
+    return build_screen(args.root, models=args.models, seeds=args.seeds, tasks=args.tasks, **_run_options(args))
 
 
 def screen_command(args: argparse.Namespace) -> int:

@@ -377,7 +377,11 @@ def build_grid(
     for variant_name in names:
         variant = VARIANTS[variant_name]
         for n_heads in head_counts if variant.uses_heads else [None]:
-            stored, params = _stored_variant(variant, env_id, n_heads, bases, overrides)
+            params = variant_params(variant, env_id, n_heads, bases, overrides)
+            # stored as its twin (same_as) when their settings agree
+            twin = None if variant.same_as is None else VARIANTS[variant.same_as]
+            same = twin is not None and variant_params(twin, env_id, n_heads, bases, overrides) == params
+            stored = twin if same and twin is not None else variant
             model = name or _model_id(stored.name, n_heads)
             label = name or _format(stored.label, n_heads)
             for seed in seeds:
@@ -471,22 +475,6 @@ def variant_params(
     if variant.algo != "soup":
         params = {**peer_hyperparams(params), **overrides.get(variant.name, {}), **overrides.get(model, {})}
     return params
-
-
-def _stored_variant(
-    variant: Variant,
-    env_id: str,
-    n_heads: int | None,
-    bases: dict[str, dict[str, Any]],
-    overrides: dict[str, dict[str, Any]],
-) -> tuple[Variant, dict[str, Any]]:
-    """The variant a run is stored as (``same_as`` when the settings agree) and its hyper-parameters."""
-    params = variant_params(variant, env_id, n_heads, bases, overrides)
-    if variant.same_as is not None:
-        twin = VARIANTS[variant.same_as]
-        if variant_params(twin, env_id, n_heads, bases, overrides) == params:
-            return twin, params
-    return variant, params
 
 
 def suite_columns(spec: RunSpec, extra_heads: dict[str, Sequence[int]] | None = None) -> dict[str, tuple[str, str]]:
