@@ -537,9 +537,7 @@ class SOUP(OffPolicyAlgorithm):
                 target_q = data.rewards + (1 - data.dones) * discounts * next_q  # (H, B, 1)
 
             # Eq. 3, each critic head's squared error over the transitions its bootstrap mask keeps
-            current_q = self.critic(
-                data.observations, data.actions, head=critic_heads.head_arg, grad_scale=critic_heads.scale
-            )  # (H, B, 1)
+            current_q = self.critic(data.observations, data.actions, head=critic_heads.head_arg)  # (H, B, 1)
             critic_masks = data.masks[:, critic_pairs].T.unsqueeze(-1).float()  # (H, B, 1), 1.0 where pair h sees transition b
             critic_loss = masked_mean((target_q - current_q) ** 2, critic_masks)  # (H,)
             critic_losses.append(self._optimize(self.critic, critic_loss, critic_heads, critic_pairs, "critic_loss"))
@@ -548,9 +546,7 @@ class SOUP(OffPolicyAlgorithm):
             if self._n_updates % self.policy_delay == 0 and actor_pairs:
                 # Eq. 5 as a loss (its gradient is the deterministic policy gradient): -Q_k(s, mu_k(s)), masked
                 actor_heads, scoring_heads = self.policy.actor_heads(actor_pairs), self.policy.critic_heads(actor_pairs)
-                actions_pi = self.actor(
-                    data.observations, head=actor_heads.head_arg, grad_scale=actor_heads.scale
-                )  # (H, B, A)
+                actions_pi = self.actor(data.observations, head=actor_heads.head_arg)  # (H, B, A)
                 q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.head_arg)  # (H, B, 1)
                 actor_masks = data.masks[:, actor_pairs].T.unsqueeze(-1).float()  # (H, B, 1)
                 actor_loss = -masked_mean(q_pi, actor_masks)  # (H,)
@@ -599,21 +595,21 @@ class SOUP(OffPolicyAlgorithm):
         self, model: EnsembleActor | EnsembleCritic, per_pair: th.Tensor, heads: TrainedHeads, pairs: list[int], name: str
     ) -> float:
         """
-        One gradient step on ``model`` alone (the actor loss leaves no gradient in the critic) for the pairs' losses: each
-        head gets the gradient of its own loss (the mean over the pairs when one head serves them all), and the body,
-        whose gradient is scaled by ``heads.scale``, the mean over its heads. The heads left out keep their values and
+        One gradient step on ``model`` alone (the actor loss leaves no gradient in the critic) for the sum of the pairs'
+        losses, as TD3 sums its critics' losses: each head gets the gradient of its own loss (of the sum of its pairs'
+        when one head serves them all), the shared body the sum over its heads. The heads left out keep their values and
         their Adam state (see EnsembleAdam).
 
-        :return: the loss, checked to be finite (``check_finite``)
+        :return: the mean loss of the pairs, checked to be finite (``check_finite``)
         """
-        loss = per_pair.sum() * heads.n_heads / len(pairs)
+        loss = per_pair.sum()
         model.optimizer.zero_grad()
         loss.backward(inputs=model.all_parameters())
         if isinstance(model.optimizer, EnsembleAdam):
             model.optimizer.step(head=heads.rows)
         else:
             model.optimizer.step()
-        value = loss.item()
+        value = per_pair.mean().item()
         if self.check_finite:
             check_loss(name, value, lambda: self.policy.describe_pairs(pairs, per_pair), self._n_updates, self.num_timesteps)
         return value
