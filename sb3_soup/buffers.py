@@ -326,6 +326,44 @@ def is_bootstrapped_buffer(buffer: Any) -> bool:
     return isinstance(buffer, _BOOTSTRAPPED_CLASSES)
 
 
+def load_bootstrapped_buffer(path: Any, n_masks: int, n_envs: int, verbose: int = 0) -> ReplayBuffer:
+    """
+    Read a replay buffer saved by ``model.save_replay_buffer`` and check that it fits a model: a bootstrapped buffer
+    with masks for ``n_masks`` head pairs, filled by ``n_envs`` envs.
+
+    :param path: the pickled buffer (a path or a file-like)
+    :param n_masks: the model's head pairs
+    :param n_envs: the model's envs
+    :param verbose: SB3's verbosity of ``load_from_pkl``
+    :return: the buffer
+    :raises ValueError: for a truncated or corrupt file, or a buffer that does not fit
+    """
+    from stable_baselines3.common.save_util import load_from_pkl
+
+    try:
+        buffer = load_from_pkl(path, verbose)
+    except OSError:
+        raise
+    except Exception as error:
+        raise ValueError(
+            f"could not read the replay buffer {path}: the file is truncated or corrupt (a process killed while writing "
+            f"it leaves such files): {type(error).__name__}: {error}"
+        ) from error
+    if not is_bootstrapped_buffer(buffer):
+        names = ", ".join(cls.__name__ for cls in _BOOTSTRAPPED_CLASSES)
+        raise ValueError(
+            f"{path} holds a {type(buffer).__name__}, not one of sb3_soup's bootstrapped replay buffers ({names}): SOUP "
+            "needs the bootstrap masks"
+        )
+    if buffer.n_masks != n_masks:
+        raise ValueError(
+            f"the replay buffer in {path} has bootstrap masks for {buffer.n_masks} head pairs, this model has {n_masks}"
+        )
+    if buffer.n_envs != n_envs:
+        raise ValueError(f"the replay buffer in {path} was filled by {buffer.n_envs} envs, this model has {n_envs}")
+    return buffer
+
+
 def _accepted() -> str:
     sb3 = ", ".join(cls.__name__ for cls in BOOTSTRAPPED_BUFFERS)
     ours = ", ".join(f"sb3_soup.{cls.__name__}" for cls in _BOOTSTRAPPED_CLASSES)

@@ -23,16 +23,6 @@ Which head(s) to run: an int runs that head alone (output ``(B, out)``), a tenso
 """
 
 
-def scale_grad(x: th.Tensor, scale: float) -> th.Tensor:
-    """
-    Identity in the forward pass, gradient multiplied by ``scale`` in the backward pass.
-    Used so that a body shared by K heads that all receive a loss gets the mean of their gradients.
-    """
-    if scale == 1.0:
-        return x
-    return x * scale + x.detach() * (1.0 - scale)
-
-
 class VectorizedLinear(nn.Module):
     """
     K independent linear layers evaluated with one batched matmul (as CORL's ``VectorizedLinear``).
@@ -218,16 +208,16 @@ class EnsembleActor(EnsembleModel):
         )
         return data
 
-    def body_features(self, obs: PyTorchObs, grad_scale: float = 1.0) -> th.Tensor:
-        """Shared body output ``(B, F)``; ``grad_scale`` scales the gradient the body receives."""
+    def body_features(self, obs: PyTorchObs) -> th.Tensor:
+        """Shared body output ``(B, F)``."""
         features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
-        return scale_grad(self.body(features), grad_scale)
+        return self.body(features)
 
-    def forward(self, obs: PyTorchObs, head: HeadIndex = None, grad_scale: float = 1.0) -> th.Tensor:  # type: ignore[override]
+    def forward(self, obs: PyTorchObs, head: HeadIndex = None) -> th.Tensor:  # type: ignore[override]
         """
         :return: candidates ``(K, B, A)`` of all heads, or ``(B, A)`` of one head
         """
-        return th.tanh(self.heads(self.body_features(obs, grad_scale), head))
+        return th.tanh(self.heads(self.body_features(obs), head))
 
 
 class EnsembleCritic(EnsembleModel):
@@ -322,7 +312,7 @@ class EnsembleCritic(EnsembleModel):
         )
         return data
 
-    def body_features(self, obs: PyTorchObs, actions: th.Tensor, grad_scale: float = 1.0) -> th.Tensor:
+    def body_features(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """
         :param actions: ``(B, A)`` or ``(N, B, A)`` (N candidate actions per observation)
         :return: body output ``(B, F)`` or ``(N, B, F)``
@@ -336,7 +326,7 @@ class EnsembleCritic(EnsembleModel):
         if self.joint_layer is None:  # no body: the heads take [features; action]
             if actions.dim() == 3:
                 h1 = h1.expand(actions.shape[0], -1, -1)  # (N, B, F)
-            return scale_grad(th.cat([h1, actions], dim=-1), grad_scale)
+            return th.cat([h1, actions], dim=-1)
         w_obs, w_act = self.joint_layer.weight.split([h1.shape[-1], actions.shape[-1]], dim=1)
         z_obs = F.linear(h1, w_obs, self.joint_layer.bias)  # (B, H2)
         # the action projection is fused with the addition of the observation part (one op, one output tensor)
@@ -347,11 +337,9 @@ class EnsembleCritic(EnsembleModel):
             # (H2, A), reads it transposed: 4x faster than the strided slice of the joint weight
             w_act_t = w_act.T.contiguous()  # (A, H2)
             z = th.baddbmm(z_obs.unsqueeze(0), actions, w_act_t.expand(actions.shape[0], -1, -1))  # (N, B, H2)
-        return scale_grad(self.body(self.activation(z)), grad_scale)
+        return self.body(self.activation(z))
 
-    def forward(  # type: ignore[override]
-        self, obs: PyTorchObs, actions: th.Tensor, head: HeadIndex = None, grad_scale: float = 1.0
-    ) -> th.Tensor:
+    def forward(self, obs: PyTorchObs, actions: th.Tensor, head: HeadIndex = None) -> th.Tensor:  # type: ignore[override]
         """
         Q-values of (obs, actions).
 
@@ -362,7 +350,7 @@ class EnsembleCritic(EnsembleModel):
         - ``head=idx`` (H indices), actions ``(B, A)`` or ``(H or 1, B, A)``: head ``idx[h]`` scores actions[h],
           returns ``(H, B, 1)``.
         """
-        return self.heads(self.body_features(obs, actions, grad_scale), head)
+        return self.heads(self.body_features(obs, actions), head)
 
     def q_matrix(self, obs: PyTorchObs, candidates: th.Tensor) -> th.Tensor:
         """

@@ -229,12 +229,6 @@ class TrainedHeads(NamedTuple):
     # all its heads in order or its only head, else the tensor of per_pair
     head_arg: HeadIndex
     rows: int | th.Tensor | None  # the heads trained, for EnsembleAdam and soft_update: one, a (K,) bool mask, None: all
-    n_heads: int  # how many distinct heads: the shared body's gradient is the mean over them
-
-    @property
-    def scale(self) -> float:
-        """Gradient scale of the shared body."""
-        return 1.0 / self.n_heads
 
 
 class Selection(NamedTuple):
@@ -456,7 +450,7 @@ class SOUPPolicy(BasePolicy):
         elif len(distinct) < n_heads:
             rows = th.zeros(n_heads, dtype=th.bool, device=self.device)
             rows[distinct] = True
-        return TrainedHeads(per_pair, head_arg, rows, len(distinct))
+        return TrainedHeads(per_pair, head_arg, rows)
 
     def describe_pairs(self, pairs: list[int], per_pair_values: th.Tensor) -> str:
         """

@@ -12,7 +12,6 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import update_learning_rate
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
@@ -26,7 +25,7 @@ from sb3_soup.buffers import (
     BootstrappedDictReplayBufferSamples,
     BootstrappedReplayBufferSamples,
     bootstrapped_buffer_class,
-    is_bootstrapped_buffer,
+    load_bootstrapped_buffer,
 )
 from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
@@ -39,14 +38,11 @@ from sb3_soup.validation import check_arguments, check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
 __version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip()
-SAVE_FORMAT_VERSION = 2
+SAVE_FORMAT_VERSION = 3
 """Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
 parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
 # The built-in exploration noise's defaults: a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG
 DEFAULT_NOISE: dict[str, float] = dict(noise_std=0.1, noise_decay=1.0, noise_std_min=0.0)
-_NOT_GIVEN = object()
-# SOUP's arguments of its policy, passed by SOUP besides policy_kwargs (see SOUP._policy_arguments)
-_POLICY_ARGUMENTS = ("n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs")
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
 # Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
@@ -392,8 +388,7 @@ class SOUP(OffPolicyAlgorithm):
         )
 
     def _setup_model(self) -> None:
-        # files saved before 0.2.0a0's issue 18 kept SOUP's policy arguments in policy_kwargs: they are its attributes
-        user_kwargs = {key: value for key, value in self.policy_kwargs.items() if key not in _POLICY_ARGUMENTS}
+        user_kwargs = self.policy_kwargs
         policy_kwargs = {**user_kwargs, **self._policy_arguments()}
         check_policy(self.policy_class, policy_kwargs, self.observation_space, sorted(self.policy_aliases))
         self.replay_buffer_class = bootstrapped_buffer_class(
@@ -537,9 +532,7 @@ class SOUP(OffPolicyAlgorithm):
                 target_q = data.rewards + (1 - data.dones) * discounts * next_q  # (H, B, 1)
 
             # Eq. 3, each critic head's squared error over the transitions its bootstrap mask keeps
-            current_q = self.critic(
-                data.observations, data.actions, head=critic_heads.head_arg, grad_scale=critic_heads.scale
-            )  # (H, B, 1)
+            current_q = self.critic(data.observations, data.actions, head=critic_heads.head_arg)  # (H, B, 1)
             critic_masks = data.masks[:, critic_pairs].T.unsqueeze(-1).float()  # (H, B, 1), 1.0 where pair h sees transition b
             critic_loss = masked_mean((target_q - current_q) ** 2, critic_masks)  # (H,)
             critic_losses.append(self._optimize(self.critic, critic_loss, critic_heads, critic_pairs, "critic_loss"))
@@ -548,9 +541,7 @@ class SOUP(OffPolicyAlgorithm):
             if self._n_updates % self.policy_delay == 0 and actor_pairs:
                 # Eq. 5 as a loss (its gradient is the deterministic policy gradient): -Q_k(s, mu_k(s)), masked
                 actor_heads, scoring_heads = self.policy.actor_heads(actor_pairs), self.policy.critic_heads(actor_pairs)
-                actions_pi = self.actor(
-                    data.observations, head=actor_heads.head_arg, grad_scale=actor_heads.scale
-                )  # (H, B, A)
+                actions_pi = self.actor(data.observations, head=actor_heads.head_arg)  # (H, B, A)
                 q_pi = self.critic(data.observations, actions_pi, head=scoring_heads.head_arg)  # (H, B, 1)
                 actor_masks = data.masks[:, actor_pairs].T.unsqueeze(-1).float()  # (H, B, 1)
                 actor_loss = -masked_mean(q_pi, actor_masks)  # (H,)
@@ -599,21 +590,21 @@ class SOUP(OffPolicyAlgorithm):
         self, model: EnsembleActor | EnsembleCritic, per_pair: th.Tensor, heads: TrainedHeads, pairs: list[int], name: str
     ) -> float:
         """
-        One gradient step on ``model`` alone (the actor loss leaves no gradient in the critic) for the pairs' losses: each
-        head gets the gradient of its own loss (the mean over the pairs when one head serves them all), and the body,
-        whose gradient is scaled by ``heads.scale``, the mean over its heads. The heads left out keep their values and
+        One gradient step on ``model`` alone (the actor loss leaves no gradient in the critic) for the sum of the pairs'
+        losses, as TD3 sums its critics' losses: each head gets the gradient of its own loss (of the sum of its pairs'
+        when one head serves them all), the shared body the sum over its heads. The heads left out keep their values and
         their Adam state (see EnsembleAdam).
 
-        :return: the loss, checked to be finite (``check_finite``)
+        :return: the mean loss of the pairs, checked to be finite (``check_finite``)
         """
-        loss = per_pair.sum() * heads.n_heads / len(pairs)
+        loss = per_pair.sum()
         model.optimizer.zero_grad()
         loss.backward(inputs=model.all_parameters())
         if isinstance(model.optimizer, EnsembleAdam):
             model.optimizer.step(head=heads.rows)
         else:
             model.optimizer.step()
-        value = loss.item()
+        value = per_pair.mean().item()
         if self.check_finite:
             check_loss(name, value, lambda: self.policy.describe_pairs(pairs, per_pair), self._n_updates, self.num_timesteps)
         return value
@@ -701,15 +692,7 @@ class SOUP(OffPolicyAlgorithm):
                 + "; create a new SOUP to use other values"
             )
         kwargs = check_arguments(**kwargs)
-        # compared with the loaded model's below: a file saved before 0.2.0a0's issue 18 stored SOUP's own policy
-        # arguments in policy_kwargs, which SB3 would compare (the loaded model's policy_kwargs are without them)
-        given_policy_kwargs = kwargs.pop("policy_kwargs", _NOT_GIVEN)
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
-        if given_policy_kwargs is not _NOT_GIVEN and given_policy_kwargs != model.policy_kwargs:
-            raise ValueError(  # SB3's message
-                "The specified policy kwargs do not equal the stored policy kwargs."
-                f"Stored kwargs: {model.policy_kwargs}, specified kwargs: {given_policy_kwargs}"
-            )
         model._sb3_soup_version = __version__  # from now on this version's model
         return model
 
@@ -724,16 +707,19 @@ class SOUP(OffPolicyAlgorithm):
                 f"{path} was not saved by SOUP (its policy class comes from {module}): load it with the algorithm that "
                 "saved it (e.g. stable_baselines3.TD3.load)"
             )
-        if saved_format != SAVE_FORMAT_VERSION:
-            saved_version = data.get("_sb3_soup_version", "0.1.0a0")
-            if isinstance(saved_format, int) and saved_format > SAVE_FORMAT_VERSION:
-                advice = "upgrade sb3-soup (pip install -U sb3-soup) to load it"
-            else:
-                advice = f"load it with sb3-soup {saved_version} (pip install sb3-soup=={saved_version}), or train a new model"
-            raise ValueError(
-                f"{path} was saved by sb3-soup {saved_version} in save format {saved_format!r}; this sb3-soup {__version__} "
-                f"reads save format {SAVE_FORMAT_VERSION} only: {advice}"
-            )
+        if saved_format == SAVE_FORMAT_VERSION:
+            return
+        saved_version = data.get("_sb3_soup_version", "0.1.0a0")
+        if isinstance(saved_format, int) and saved_format > SAVE_FORMAT_VERSION:
+            advice = "upgrade sb3-soup (pip install -U sb3-soup) to load it"
+        elif saved_version == __version__:  # a development version, before its save format changed
+            advice = "it was saved during this version's development, before its format changed: train a new model"
+        else:
+            advice = f"load it with sb3-soup {saved_version} (pip install sb3-soup=={saved_version}), or train a new model"
+        raise ValueError(
+            f"{path} was saved by sb3-soup {saved_version} in save format {saved_format!r}; this sb3-soup {__version__} "
+            f"reads save format {SAVE_FORMAT_VERSION} only: {advice}"
+        )
 
     def set_parameters(
         self,
@@ -762,37 +748,15 @@ class SOUP(OffPolicyAlgorithm):
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
         """
-        Load a replay buffer saved by ``save_replay_buffer``, after checking that it fits this model (bootstrap masks for
-        each head pair, same number of envs). The model's buffer is only replaced when the file is complete and fits.
-        A HER buffer is given the model's env (to compute the rewards of relabelled goals), as in SB3.
+        SB3's ``load_replay_buffer``, once the file is checked to fit this model (bootstrap masks for each head pair,
+        as many envs; :func:`sb3_soup.buffers.load_bootstrapped_buffer`): the model's buffer is only replaced then.
 
         :param path: Path to the pickled replay buffer
         :param truncate_last_traj: When using ``HerReplayBuffer``: if ``True``, we assume that the last trajectory in the
             replay buffer was finished (and truncate it); if ``False``, we assume that we continue the same trajectory
             (same episode), as SB3
         """
-        try:
-            buffer = load_from_pkl(path, self.verbose)
-        except OSError:
-            raise
-        except Exception as error:
-            raise ValueError(
-                f"could not read the replay buffer {path}: the file is truncated or corrupt (a process killed while writing "
-                f"it leaves such files): {type(error).__name__}: {error}"
-            ) from error
-        if not is_bootstrapped_buffer(buffer):
-            raise ValueError(
-                f"{path} holds a {type(buffer).__name__}, not one of sb3_soup's bootstrapped replay buffers "
-                "(BootstrappedReplayBuffer, BootstrappedDictReplayBuffer, BootstrappedHerReplayBuffer, "
-                "BootstrappedNStepReplayBuffer): SOUP needs the bootstrap masks"
-            )
-        if buffer.n_masks != self.policy.n_pairs:
-            raise ValueError(
-                f"the replay buffer in {path} has bootstrap masks for {buffer.n_masks} head pairs, this model has "
-                f"{self.policy.n_pairs} (n_actor_heads={self.n_actor_heads}, n_critic_heads={self.n_critic_heads})"
-            )
-        if buffer.n_envs != self.n_envs:
-            raise ValueError(f"the replay buffer in {path} was filled by {buffer.n_envs} envs, this model has {self.n_envs}")
+        buffer = load_bootstrapped_buffer(path, self.policy.n_pairs, self.n_envs, self.verbose)
         if isinstance(buffer, HerReplayBuffer):
             if self.env is None:
                 raise ValueError(

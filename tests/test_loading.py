@@ -134,6 +134,22 @@ def test_older_save_formats_are_refused(saved, tmp_path, saved_format):
         SOUP.load(old)
 
 
+def test_a_development_save_format_of_this_version_is_refused(saved, tmp_path):
+    """0.2.0a0's files from before its save format 3 (SOUP's policy arguments in policy_kwargs, a bool baseline flag)."""
+
+    def development(data):
+        data.update(_sb3_soup_format=SAVE_FORMAT_VERSION - 1, _sb3_soup_version=__version__)
+
+    old = _rewrite(saved / "model.zip", tmp_path / "old.zip", development)
+    message = (
+        f"old.zip was saved by sb3-soup {__version__} in save format {SAVE_FORMAT_VERSION - 1}; this sb3-soup "
+        f"{__version__} reads save format {SAVE_FORMAT_VERSION} only: it was saved during this version's development, "
+        "before its format changed: train a new model"
+    )
+    with pytest.raises(ValueError, match=re.escape(message)):
+        SOUP.load(old)
+
+
 # ---------------------------------------------------------------- another K, another preset: loaded as saved
 
 

@@ -416,16 +416,6 @@ def test_every_state_dict_entry_is_a_float_and_averaging_loads(tmp_path):
         assert th.equal(value, randomized[key]), key
 
 
-def test_older_files_bool_baseline_flag_loads():
-    model = SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), **TINY)
-    state_dict = dict(model.policy.state_dict())
-    pending = state_dict.pop("confidence.baseline_pending")
-    assert float(pending) == 1.0  # not yet set
-    state_dict["confidence.baseline_ready"] = th.ones((), dtype=th.bool)  # how sb3-soup 0.1 stored it: set
-    model.policy.load_state_dict(state_dict)
-    assert float(model.policy.confidence.baseline_pending) == 0.0
-
-
 # ----- train/eval mode, identity env ---------------------------------------------------------------------------------
 
 
