@@ -6,7 +6,7 @@ PIP = $(PYTHON) -m pip
 # The CPU build of torch: install it before anything that depends on torch, or pip pulls a multi-GB CUDA build.
 TORCH_CPU ?= torch==2.13.0
 PYTEST_WORKERS ?= 2
-LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/) _sb3_soup_zoo_hook.py setup.py
+LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/) _sb3_soup_zoo_hook.py setup.py docs/conf.py
 
 .PHONY: install install-tests install-docs demo test test-slow test-all bench doc lint type check-codestyle format
 
