@@ -6,9 +6,9 @@ PIP = $(PYTHON) -m pip
 # The CPU build of torch: install it before anything that depends on torch, or pip pulls a multi-GB CUDA build.
 TORCH_CPU ?= torch==2.13.0
 PYTEST_WORKERS ?= 2
-LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/) _sb3_soup_zoo_hook.py setup.py
+LINT_PATHS = sb3_soup/ tests/ examples/ $(wildcard benchmarks/) _sb3_soup_zoo_hook.py setup.py docs/conf.py
 
-.PHONY: install install-tests demo test test-slow test-all bench lint type check-codestyle format
+.PHONY: install install-tests install-docs demo test test-slow test-all bench doc lint type check-codestyle format
 
 install:
 	$(PIP) install --quiet $(TORCH_CPU)
@@ -17,6 +17,10 @@ install:
 install-tests:
 	$(PIP) install --quiet $(TORCH_CPU)
 	$(PIP) install --quiet -e ".[tests,zoo]"
+
+install-docs:
+	$(PIP) install --quiet $(TORCH_CPU)
+	$(PIP) install --quiet -e ".[docs]"
 
 ## Train SOUP on a small default (Pendulum-v1), print evaluation returns, save the model and a learning curve.
 demo: install
@@ -35,6 +39,10 @@ test-all: test test-slow
 ## Throughput of SOUP against SB3's DDPG/TD3 on Hopper-v4 (about 20 minutes on 2 cores; see docs/benchmarks.md).
 bench: install
 	$(PYTHON) benchmarks/throughput.py --out throughput.json
+
+## The documentation (docs/: Markdown pages, autodoc of the API) as HTML in docs/_build/html; every warning is an error.
+doc: install-docs
+	$(PYTHON) -m sphinx -W --keep-going -b html docs docs/_build/html
 
 lint:
 	$(PYTHON) -m ruff check $(LINT_PATHS)
