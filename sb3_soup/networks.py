@@ -114,6 +114,41 @@ class EnsembleModel(BaseModel):
     # (all, body, head) parameter lists, worked out once: every gradient step and soft update needs them
     _parameter_lists: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]] | None = None
 
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        n_heads: int,
+        body_arch: list[int],
+        head_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module],
+        normalize_images: bool,
+    ):
+        super().__init__(
+            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
+        )
+        self.n_heads = n_heads
+        self.body_arch = body_arch
+        self.head_arch = head_arch
+        self.features_dim = features_dim
+        self.activation_fn = activation_fn
+
+    def _get_constructor_parameters(self) -> dict:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                n_heads=self.n_heads,
+                body_arch=self.body_arch,
+                head_arch=self.head_arch,
+                features_dim=self.features_dim,
+                activation_fn=self.activation_fn,
+                features_extractor=self.features_extractor,
+            )
+        )
+        return data
+
     def _split_parameters(self) -> tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]]:
         lists = self._parameter_lists
         if lists is None:
@@ -183,30 +218,12 @@ class EnsembleActor(EnsembleModel):
         normalize_images: bool = True,
     ):
         super().__init__(
-            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
-        )
-        self.n_heads = n_heads
-        self.body_arch = body_arch
-        self.head_arch = head_arch
-        self.features_dim = features_dim
-        self.activation_fn = activation_fn
+            observation_space, action_space, n_heads, body_arch, head_arch, features_extractor, features_dim, activation_fn,
+            normalize_images,
+        )  # fmt: skip
         self.body = mlp([features_dim, *body_arch], activation_fn)
         body_out = body_arch[-1] if body_arch else features_dim
         self.heads = HeadStack(body_out, head_arch, get_action_dim(action_space), n_heads, activation_fn)
-
-    def _get_constructor_parameters(self) -> dict:
-        data = super()._get_constructor_parameters()
-        data.update(
-            dict(
-                n_heads=self.n_heads,
-                body_arch=self.body_arch,
-                head_arch=self.head_arch,
-                features_dim=self.features_dim,
-                activation_fn=self.activation_fn,
-                features_extractor=self.features_extractor,
-            )
-        )
-        return data
 
     def body_features(self, obs: PyTorchObs) -> th.Tensor:
         """Shared body output ``(B, F)``."""
@@ -264,8 +281,9 @@ class EnsembleCritic(EnsembleModel):
         action_layer: int = 1,
     ):
         super().__init__(
-            observation_space, action_space, features_extractor=features_extractor, normalize_images=normalize_images
-        )
+            observation_space, action_space, n_heads, body_arch, head_arch, features_extractor, features_dim, activation_fn,
+            normalize_images,
+        )  # fmt: skip
         self.share_features_extractor = share_features_extractor
         if action_layer not in (0, 1):
             raise ValueError(
@@ -277,11 +295,6 @@ class EnsembleCritic(EnsembleModel):
                 f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {body_arch}; "
                 "with net_arch['qf_action_layer']=0 the action joins at the input (SB3's critic) and any body goes"
             )
-        self.n_heads = n_heads
-        self.body_arch = body_arch
-        self.head_arch = head_arch
-        self.features_dim = features_dim
-        self.activation_fn = activation_fn
         self.action_layer = action_layer
         action_dim = get_action_dim(action_space)
         if action_layer == 1:
@@ -298,18 +311,7 @@ class EnsembleCritic(EnsembleModel):
 
     def _get_constructor_parameters(self) -> dict:
         data = super()._get_constructor_parameters()
-        data.update(
-            dict(
-                n_heads=self.n_heads,
-                body_arch=self.body_arch,
-                head_arch=self.head_arch,
-                features_dim=self.features_dim,
-                activation_fn=self.activation_fn,
-                features_extractor=self.features_extractor,
-                share_features_extractor=self.share_features_extractor,
-                action_layer=self.action_layer,
-            )
-        )
+        data.update(share_features_extractor=self.share_features_extractor, action_layer=self.action_layer)
         return data
 
     def body_features(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
