@@ -17,14 +17,14 @@ from gymnasium import spaces
 from stable_baselines3 import TD3
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.envs import IdentityEnvBox
+from stable_baselines3.common.envs import FakeImageEnv, IdentityEnvBox
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, NatureCNN
 from stable_baselines3.common.utils import get_linear_fn
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from sb3_soup import SOUP
+from sb3_soup import SOUP, ObservationSpaceError
 from sb3_soup.policies import parse_net_arch
 
 # the budgets of SB3's tests, smaller: a few gradient steps on tiny networks
@@ -328,6 +328,31 @@ def test_float_image_like_observations_with_normalize_images_false():  # SB3's t
     model = SOUP("CnnPolicy", FloatImageEnv(), **kwargs).learn(30)
     assert type(model.actor.features_extractor).__name__ == "NatureCNN"
     assert model.policy_kwargs["normalize_images"] is False
+
+
+@pytest.mark.parametrize("model_class", [TD3, SOUP])
+def test_cnn_policy_on_float_image_like_observations_raises_an_assertion_error(model_class):  # SB3's test_image_like_input
+    # VecNormalize's float (1, 36, 36) observations are not images for NatureCNN unless normalize_images=False: TD3 fails
+    # NatureCNN's assertion, SOUP raises ObservationSpaceError, both a ValueError and an AssertionError
+    env = VecNormalize(DummyVecEnv([lambda: FakeImageEnv(36, 36, 1, discrete=False, channel_first=True)]))
+    kwargs = dict(policy_kwargs=dict(normalize_images=True, features_extractor_kwargs=dict(features_dim=32)), seed=1)
+    with pytest.raises(AssertionError, match="NatureCNN"):
+        model_class("CnnPolicy", env, buffer_size=250, **kwargs)
+
+
+@pytest.mark.parametrize("env_id", ["Pendulum-v1", "discrete"])
+def test_cnn_policy_on_non_image_observations_names_the_parameter(env_id):
+    env = ObservationSpaceEnv(spaces.Discrete(4)) if env_id == "discrete" else env_id
+    with pytest.raises(AssertionError):  # what TD3 raises
+        TD3("CnnPolicy", env)
+    with pytest.raises(ObservationSpaceError, match=r"^policy='CnnPolicy': NatureCNN .* takes image observations") as info:
+        SOUP("CnnPolicy", env)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, AssertionError)
+    assert "policy='MlpPolicy'" in str(info.value) and "normalize_images=False" in str(info.value)
+    with pytest.raises(ObservationSpaceError, match=r"^policy_kwargs\['features_extractor_class'\]=NatureCNN: "):
+        SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(features_extractor_class=NatureCNN))
+    with pytest.raises(ObservationSpaceError, match="'MultiInputPolicy' is for Dict"):  # also both
+        SOUP("MultiInputPolicy", "Pendulum-v1")
 
 
 # ----- multiple envs, callbacks, TensorBoard, predict ----------------------------------------------------------------
