@@ -18,7 +18,7 @@ from sb3_soup.confidence import (
     UCBConfidence,
 )
 from sb3_soup.export import export_onnx
-from sb3_soup.policies import CnnPolicy, EnsembleView, MlpPolicy, MultiInputPolicy, SOUPPolicy
+from sb3_soup.policies import CnnPolicy, EnsembleView, MlpPolicy, MultiInputPolicy, ObservationSpaceError, SOUPPolicy
 from sb3_soup.presets import PRESETS, paper_settings
 from sb3_soup.soup import SOUP
 
@@ -44,6 +44,7 @@ __all__ = [
     "MlpPolicy",
     "MultiInputPolicy",
     "NoConfidence",
+    "ObservationSpaceError",
     "SOUPPolicy",
     "UCBConfidence",
     "__version__",

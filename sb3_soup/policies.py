@@ -26,6 +26,15 @@ SOUP_NET_ARCH_KEYS = (*DEFAULT_NET_ARCH, "qf_action_layer")
 NetArch = list[int] | dict[str, Any]
 
 
+class ObservationSpaceError(ValueError, AssertionError):
+    """
+    The policy does not fit the observation space (``CnnPolicy``/``NatureCNN`` on observations that are not images,
+    ``MultiInputPolicy`` on observations that are not a Dict). A ``ValueError`` (SOUP's rule for bad input) and an
+    ``AssertionError``, what SB3's TD3 and DDPG raise there (``NatureCNN``'s assertion), so that code written for them,
+    ``pytest.raises(AssertionError)`` in SB3's tests included, catches it.
+    """
+
+
 def _layer_sizes(name: str, sizes: Any, example: list[int]) -> list[int]:
     valid = isinstance(sizes, (list, tuple)) and all(
         isinstance(size, (int, np.integer)) and not isinstance(size, (bool, np.bool_)) and size > 0 for size in sizes
@@ -195,7 +204,9 @@ def check_policy(
         if unknown:
             raise ValueError(f"policy_kwargs has unknown keys {unknown}; {policy_class.__name__} accepts {names}")
     if issubclass(policy_class, MultiInputPolicy) and not isinstance(observation_space, spaces.Dict):
-        raise ValueError(f"policy must be 'MlpPolicy' for {observation_space} observations ('MultiInputPolicy' is for Dict)")
+        raise ObservationSpaceError(
+            f"policy must be 'MlpPolicy' for {observation_space} observations ('MultiInputPolicy' is for Dict)"
+        )
     # the extractor asked for, or the policy's default (FlattenExtractor for MlpPolicy, NatureCNN for CnnPolicy)
     default_extractor = accepted["features_extractor_class"].default if "features_extractor_class" in accepted else None
     extractor = policy_kwargs.get("features_extractor_class", default_extractor)
@@ -206,11 +217,15 @@ def check_policy(
     if extractor is NatureCNN and not is_image_space(
         observation_space, check_channels=False, normalized_image=normalized_image
     ):
-        raise ValueError(
-            "NatureCNN (CnnPolicy's features extractor) takes image observations: a Box of shape (C, H, W) or (H, W, C), "
-            "uint8 in [0, 255] (or float, already normalised, with normalize_images=False), "
-            f"got {observation_space}; use 'MlpPolicy' (or 'MultiInputPolicy' for Dict observations, whose image keys get "
-            "a NatureCNN)"
+        if "features_extractor_class" in policy_kwargs:
+            parameter = "policy_kwargs['features_extractor_class']=NatureCNN"
+        else:
+            parameter = "policy='CnnPolicy'" if issubclass(policy_class, CnnPolicy) else f"policy={policy_class.__name__}"
+        raise ObservationSpaceError(
+            f"{parameter}: NatureCNN (CnnPolicy's features extractor) takes image observations: a Box of shape "
+            "(C, H, W) or (H, W, C), uint8 in [0, 255] (or float, already normalised, with "
+            f"policy_kwargs=dict(normalize_images=False)), got {observation_space}; use policy='MlpPolicy' (or "
+            "'MultiInputPolicy' for Dict observations, whose image keys get a NatureCNN)"
         )
     if is_image_space(observation_space, check_channels=False) and extractor is FlattenExtractor:
         warnings.warn(

@@ -17,14 +17,14 @@ from gymnasium import spaces
 from stable_baselines3 import TD3
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback, StopTrainingOnRewardThreshold
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.envs import IdentityEnvBox
+from stable_baselines3.common.envs import FakeImageEnv, IdentityEnvBox
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, NatureCNN
 from stable_baselines3.common.utils import get_linear_fn
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-from sb3_soup import SOUP
+from sb3_soup import SOUP, ObservationSpaceError
 from sb3_soup.policies import parse_net_arch
 
 # the budgets of SB3's tests, smaller: a few gradient steps on tiny networks
@@ -330,6 +330,31 @@ def test_float_image_like_observations_with_normalize_images_false():  # SB3's t
     assert model.policy_kwargs["normalize_images"] is False
 
 
+@pytest.mark.parametrize("model_class", [TD3, SOUP])
+def test_cnn_policy_on_float_image_like_observations_raises_an_assertion_error(model_class):  # SB3's test_image_like_input
+    # VecNormalize's float (1, 36, 36) observations are not images for NatureCNN unless normalize_images=False: TD3 fails
+    # NatureCNN's assertion, SOUP raises ObservationSpaceError, both a ValueError and an AssertionError
+    env = VecNormalize(DummyVecEnv([lambda: FakeImageEnv(36, 36, 1, discrete=False, channel_first=True)]))
+    kwargs = dict(policy_kwargs=dict(normalize_images=True, features_extractor_kwargs=dict(features_dim=32)), seed=1)
+    with pytest.raises(AssertionError, match="NatureCNN"):
+        model_class("CnnPolicy", env, buffer_size=250, **kwargs)
+
+
+@pytest.mark.parametrize("env_id", ["Pendulum-v1", "discrete"])
+def test_cnn_policy_on_non_image_observations_names_the_parameter(env_id):
+    env = ObservationSpaceEnv(spaces.Discrete(4)) if env_id == "discrete" else env_id
+    with pytest.raises(AssertionError):  # what TD3 raises
+        TD3("CnnPolicy", env)
+    with pytest.raises(ObservationSpaceError, match=r"^policy='CnnPolicy': NatureCNN .* takes image observations") as info:
+        SOUP("CnnPolicy", env)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, AssertionError)
+    assert "policy='MlpPolicy'" in str(info.value) and "normalize_images=False" in str(info.value)
+    with pytest.raises(ObservationSpaceError, match=r"^policy_kwargs\['features_extractor_class'\]=NatureCNN: "):
+        SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(features_extractor_class=NatureCNN))
+    with pytest.raises(ObservationSpaceError, match="'MultiInputPolicy' is for Dict"):  # also both
+        SOUP("MultiInputPolicy", "Pendulum-v1")
+
+
 # ----- multiple envs, callbacks, TensorBoard, predict ----------------------------------------------------------------
 
 
@@ -397,6 +422,31 @@ def test_same_seed_same_training():  # SB3's test_deterministic_training_common
 
 
 # ----- state_dict, save/load -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("policy", ["MlpPolicy", "CnnPolicy"])
+def test_save_load_policy_only(tmp_path, policy):  # SB3's test_save_load_policy, but for TD3's stand-alone actor
+    if policy == "MlpPolicy":
+        env, kwargs = IdentityEnvBox(-1, 1), dict(policy_kwargs=dict(net_arch=[16]), learning_rate=1e-3)
+    else:  # SB3's CnnPolicy case, its arguments
+        env = FakeImageEnv(screen_height=40, screen_width=40, n_channels=2, discrete=False)
+        extractor = dict(features_extractor_kwargs=dict(features_dim=16))
+        kwargs = dict(buffer_size=250, learning_starts=100, policy_kwargs=extractor, train_freq=2)
+    env = DummyVecEnv([lambda: env])
+    model = SOUP(policy, env, **kwargs).learn(128)
+    env.reset()
+    observations = np.concatenate([env.step([env.action_space.sample()])[0] for _ in range(10)], axis=0)
+    policy_module = model.policy
+    policy_module.load_state_dict({name: th.rand_like(value) for name, value in policy_module.state_dict().items()})
+    actions, _ = policy_module.predict(observations, deterministic=True)
+    policy_module.save(tmp_path / "policy.pkl")
+    loaded = type(policy_module).load(tmp_path / "policy.pkl")
+    for name, value in policy_module.state_dict().items():
+        assert th.allclose(value, loaded.state_dict()[name]), name
+    np.testing.assert_allclose(loaded.predict(observations, deterministic=True)[0], actions, atol=1e-4)
+    # the one difference (docs/results.md, "Drop-in parity"): TD3's policy.actor is a stand-alone SB3 policy; SOUP's is
+    # the K-head EnsembleActor, whose candidates the critic heads choose among in policy.predict
+    assert not hasattr(policy_module.actor, "predict")
 
 
 def test_every_state_dict_entry_is_a_float_and_averaging_loads(tmp_path):

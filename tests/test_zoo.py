@@ -6,6 +6,7 @@ with tiny budgets, from a folder outside the repository (so they rely on the ins
 
 import importlib.metadata
 import importlib.util
+import inspect
 import os
 import re
 import site
@@ -114,9 +115,72 @@ def test_hyperparams_file_has_the_issues_envs():
             assert f"{env}-{version}" in entries
     assert "Pendulum-v1" in entries
     for values in entries.values():
+        if values.get("replay_buffer_class") == "HerReplayBuffer":  # goal-conditioned: the Zoo's HER entries' values
+            continue
         # SOUP's defaults, only the budget set (confidence and mask_prob left so that `--hyperparams preset:...` can set them)
         assert set(values) <= {"n_timesteps", "policy", "n_heads", "learning_starts"}
     assert entries["Hopper-v4"]["learning_starts"] == 10_000 and entries["Walker2d-v5"] == entries["Hopper-v4"]
+
+
+def repo_soup_entries() -> dict:
+    """The repository's soup.yml (the installed one may be another checkout's)."""
+    return yaml.safe_load((REPO / "hyperparams" / "soup.yml").read_text())
+
+
+def test_pandareach_entry_is_the_her_benchmarks_settings():
+    """soup.yml's PandaReach-v3 (the Zoo's HER entry for SOUP) is what benchmarks/her_panda.py measured."""
+    spec = importlib.util.spec_from_file_location("her_panda", REPO / "benchmarks" / "her_panda.py")
+    her_panda = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(her_panda)
+    entry = repo_soup_entries()[her_panda.ENV_ID]
+    assert entry["policy"] == "MultiInputPolicy" and entry["replay_buffer_class"] == "HerReplayBuffer"
+    from sb3_soup import SOUP
+
+    defaults = inspect.signature(SOUP.__init__).parameters  # (tau: SOUP's default, the benchmark's value)
+    for key, value in her_panda.COMMON.items():
+        assert entry.get(key, defaults[key].default) == value, key
+    assert eval(entry["replay_buffer_kwargs"]) == her_panda.HER_KWARGS
+    assert eval(entry["policy_kwargs"]) == dict(net_arch=her_panda.SOUP_ARCH)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_her_entry_trains_with_soup_from_the_command_line(tmp_path):
+    """`rl_zoo3.train --algo soup` with soup.yml's PandaReach-v3 entry (HerReplayBuffer) on a registered goal env."""
+    env_id = "SOUPBitFlipping-v0"  # tests/goal_env.py: SB3's BitFlippingEnv, continuous actions (no panda-gym needed)
+    config = tmp_path / "soup_her.yml"
+    config.write_text(yaml.safe_dump({env_id: repo_soup_entries()["PandaReach-v3"]}))
+    tests = str(Path(__file__).resolve().parent)
+    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join([tests, *sys.path]))
+    env.pop(_sb3_soup_zoo_hook.ENV_VAR, None)
+    args = ["-m", "rl_zoo3.train", "--algo", "soup", "--env", env_id, "--gym-packages", "goal_env", "--conf-file", str(config)]
+    args += ["-n", "120", "--hyperparams", "learning_starts:40", "batch_size:16", "--eval-freq", "-1", "--seed", "0"]
+    result = subprocess.run([sys.executable, *args, "-f", str(tmp_path)], cwd=tmp_path, env=env, capture_output=True,
+                            text=True, timeout=300)  # fmt: skip
+    check(result)
+    run_dir = tmp_path / "soup" / f"{env_id}_1"
+    saved = dict(yaml.load((run_dir / env_id / "config.yml").read_text(), Loader=yaml.UnsafeLoader))
+    assert saved["replay_buffer_class"] == "HerReplayBuffer" and saved["gamma"] == 0.95
+    import goal_env  # noqa: F401  (registers the env here too)
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_soup import SOUP, BootstrappedHerReplayBuffer
+
+    model = SOUP.load(run_dir / f"{env_id}.zip", env=make_vec_env(env_id), device="cpu")
+    assert model.num_timesteps == 120 and model.gamma == 0.95
+    assert issubclass(model.replay_buffer_class, BootstrappedHerReplayBuffer)
+    assert model.replay_buffer_kwargs["n_sampled_goal"] == 4 and "n_updates" in result.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_pandareach_entry_trains_from_the_command_line(tmp_path):
+    """soup.yml's PandaReach-v3 through the Zoo on panda-gym itself (pip install "sb3-soup[her]"), a short run."""
+    pytest.importorskip("panda_gym")
+    args = ["-m", "rl_zoo3.train", "--algo", "soup", "--env", "PandaReach-v3", "--gym-packages", "panda_gym"]
+    args += ["--conf-file", str(REPO / "hyperparams" / "soup.yml"), "-n", "300", "--hyperparams", "learning_starts:100"]
+    check(run([*args, "--eval-freq", "-1", "--seed", "0", "-f", str(tmp_path)], tmp_path, timeout=800))
+    assert (tmp_path / "soup" / "PandaReach-v3_1" / "PandaReach-v3.zip").is_file()
 
 
 def test_paper_hyperparams_file_is_paper_settings():
