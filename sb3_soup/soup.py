@@ -1,6 +1,7 @@
 """SOUP: Self-Adaptive Double Bootstrapped DDPG, as a Stable-Baselines3 off-policy algorithm."""
 
 import io
+import math
 import pathlib
 import warnings
 from typing import Any, ClassVar, TypeVar
@@ -35,7 +36,19 @@ from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.validation import check_arguments, check_finite_env_output
+from sb3_soup.validation import (
+    Rule,
+    boolean,
+    check_finite_env_output,
+    choice,
+    given,
+    integer,
+    is_int,
+    is_number,
+    keyword_dict,
+    number,
+    optional,
+)
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
 __version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip()
@@ -56,15 +69,80 @@ _STRUCTURAL_ARGUMENTS = (
     "n_critic_heads",
     "preset",
     "confidence",
-    "alpha",
-    "decay",
-    "temperature",
-    "temperature_mode",
-    "confidence_lr",
-    "confidence_baseline",
-    "ucb_lambda",
+    "confidence_kwargs",
     "policy",
 )
+TRAIN_HEADS = ("active", "all", "all_critics")
+TARGET_Q = ("own", "min_pair")
+
+
+def _learning_rate(name: str, value: Any) -> Any:
+    if callable(value) or (is_number(value) and math.isfinite(value) and value > 0):
+        return value
+    raise ValueError(
+        f"{name} must be a float > 0 or a schedule (a function of the progress remaining, from 1 to 0), {given(value)}"
+    )
+
+
+def _seed(name: str, value: Any) -> int | None:
+    if value is None:
+        return None
+    if not is_int(value) or not 0 <= value < 2**32:
+        raise ValueError(f"{name} must be None or an integer in [0, 2**32 - 1] (NumPy's seed range), {given(value)}")
+    return int(value)
+
+
+def _integer(meaning: str) -> Rule:
+    def rule(name: str, value: Any) -> int:
+        if not is_int(value):
+            raise ValueError(f"{name} must be an integer ({meaning}), {given(value)}")
+        return int(value)
+
+    return rule
+
+
+def _action_noise(name: str, value: Any) -> Any:
+    if value is not None and not isinstance(value, ActionNoise):
+        raise ValueError(
+            f"{name} must be None (the built-in Gaussian noise: noise_std, noise_decay, noise_std_min) or an "
+            f"instance of stable_baselines3.common.noise.ActionNoise, {given(value)}"
+        )
+    return value
+
+
+ARGUMENT_RULES: dict[str, Rule] = {
+    # SOUP's own arguments (n_heads, the head counts, preset and mask_prob: sb3_soup.presets.resolve_model; confidence
+    # and confidence_kwargs: the policy and the strategy, which take them)
+    "critic_learning_rate": optional(_learning_rate, "the same as learning_rate"),
+    "train_heads": choice(TRAIN_HEADS, "which head pairs each gradient step trains"),
+    "target_q": choice(TARGET_Q, "which target critic heads each head bootstraps from"),
+    "policy_delay": integer(1, "critic updates per actor and target update"),
+    "target_policy_noise": number(0.0, math.inf, False, True, "std of the target action's smoothing noise, 0: none"),
+    "target_noise_clip": number(0.0, math.inf, False, True, "limit of the target action's smoothing noise"),
+    "noise_std": number(0.0, math.inf, False, True, "initial exploration noise std"),
+    "noise_decay": number(0.0, 1.0, True, False, "noise std decay per env step"),
+    "noise_std_min": number(0.0, math.inf, False, True, "lowest exploration noise std"),
+    "check_finite": boolean("raise at the first NaN/inf observation, reward, Q value or loss"),
+    "replay_buffer_kwargs": keyword_dict(
+        {"n_masks", "mask_prob"}, "replay buffer", "SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
+    ),
+    "policy_kwargs": keyword_dict(
+        set(_POLICY_ARGUMENTS), "policy", "set them as SOUP arguments (n_heads, preset, confidence, confidence_kwargs...)"
+    ),
+    # SB3's arguments are SB3's to check, but for those SB3 would fail on without naming them
+    "buffer_size": _integer("replay buffer size"),
+    "seed": _seed,
+    "action_noise": _action_noise,
+}
+"""SOUP's rules for its arguments (``SOUP.__init__`` and ``SOUP.load`` check them with :func:`check_arguments`)."""
+
+
+def check_arguments(**kwargs: Any) -> dict[str, Any]:
+    """
+    :param kwargs: SOUP's arguments (those without a rule in :data:`ARGUMENT_RULES` pass through unchecked)
+    :return: the arguments, each checked by its rule (numbers as Python ``int``/``float``/``bool``)
+    """
+    return {name: (ARGUMENT_RULES[name](name, value) if name in ARGUMENT_RULES else value) for name, value in kwargs.items()}
 
 
 def check_noise(action_noise: ActionNoise | None, noise_args: dict[str, float]) -> None:
@@ -146,16 +224,11 @@ class SOUP(OffPolicyAlgorithm):
         (sets head counts and confidence; see :data:`sb3_soup.PRESETS`)
     :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive"
         (default, or the preset's), "ucb" (optimistic selection) or a :class:`sb3_soup.ConfidenceStrategy` instance
-    :param alpha: fixed confidence of a critic head in its own candidate (``confidence="fixed"``), in (0, 1)
-    :param decay: per-step decay of the confidence (``confidence="decayed"``), in (0, 1]
-    :param temperature: softmax temperature of the selection policy trained by REINFORCE (``"adaptive"``), > 0
-    :param temperature_mode: "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness depends on the
-        scale of Q); "relative": the E-Q values in units of their spread across the state's candidates, whatever the
-        scale of Q (not the default: it did not learn better in docs/results.md's measurements)
-    :param confidence_lr: learning rate of the confidence network (``"adaptive"``)
-    :param confidence_baseline: subtract a running-mean reward baseline in REINFORCE (False: the paper's raw reward)
-    :param ucb_lambda: weight of the disagreement bonus of the optimistic selection (``confidence="ucb"``): while
-        exploring, candidates are rated ``mean + ucb_lambda * std`` over the critic heads (SUNRISE)
+    :param confidence_kwargs: the arguments of the strategy that ``confidence`` names, by the class's own names (None:
+        its defaults): ``alpha`` for "fixed" (:class:`sb3_soup.FixedConfidence`), ``decay`` for "decayed"
+        (:class:`sb3_soup.DecayedConfidence`), ``ucb_lambda`` for "ucb" (:class:`sb3_soup.UCBConfidence`), ``lr``,
+        ``temperature``, ``temperature_mode``, ``baseline``... for "adaptive" (:class:`sb3_soup.AdaptiveConfidence`);
+        none with a strategy instance, which has its own
     :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off
         (default 0.5, 1.0 for the "ddpg" preset)
     :param train_heads: "active": train the episode's active head pair (the paper); "all": every head pair
@@ -222,13 +295,7 @@ class SOUP(OffPolicyAlgorithm):
         n_critic_heads: int | None = None,
         preset: str | None = None,
         confidence: str | ConfidenceStrategy | None = None,
-        alpha: float = 0.5,
-        decay: float = 0.9995,
-        temperature: float = 1.0,
-        temperature_mode: str = "absolute",
-        confidence_lr: float = 1e-4,
-        confidence_baseline: bool = True,
-        ucb_lambda: float = 1.0,
+        confidence_kwargs: dict[str, Any] | None = None,
         mask_prob: float | None = None,
         train_heads: str = "active",
         target_q: str = "own",
@@ -248,81 +315,42 @@ class SOUP(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ):
         model = resolve_model(n_heads, n_actor_heads, n_critic_heads, preset, confidence, mask_prob)
-        args = check_arguments(
-            learning_rate=learning_rate,
-            critic_learning_rate=critic_learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            alpha=alpha,
-            decay=decay,
-            temperature=temperature,
-            temperature_mode=temperature_mode,
-            confidence_lr=confidence_lr,
-            confidence_baseline=confidence_baseline,
-            ucb_lambda=ucb_lambda,
-            train_heads=train_heads,
-            target_q=target_q,
-            policy_delay=policy_delay,
-            target_policy_noise=target_policy_noise,
-            target_noise_clip=target_noise_clip,
-            noise_std=noise_std,
-            noise_decay=noise_decay,
-            noise_std_min=noise_std_min,
-            check_finite=check_finite,
-            stats_window_size=stats_window_size,
-            policy_kwargs=policy_kwargs,
-            seed=seed,
-        )
+        args = check_arguments(**{name: value for name, value in locals().items() if name in ARGUMENT_RULES})
         check_noise(action_noise, {name: args[name] for name in DEFAULT_NOISE})
         super().__init__(
             policy,
             env,
             learning_rate,
             args["buffer_size"],
-            args["learning_starts"],
-            args["batch_size"],
-            args["tau"],
-            args["gamma"],
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
             train_freq,
-            args["gradient_steps"],
+            gradient_steps,
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),  # a copy: the masks' arguments are added to it
-            optimize_memory_usage=args["optimize_memory_usage"],
-            n_steps=args["n_steps"],
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
             policy_kwargs=dict(policy_kwargs or {}),
-            stats_window_size=args["stats_window_size"],
+            stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
             device=device,
-            seed=seed,
+            seed=args["seed"],
             sde_support=False,
             supported_action_spaces=(spaces.Box,),
             support_multi_env=True,
         )
-        self.critic_learning_rate = critic_learning_rate
+        self.critic_learning_rate = args["critic_learning_rate"]
         self.n_heads: int = model["n_heads"]
         self.preset_name: str | None = model["preset"]
         self.n_actor_heads: int = model["n_actor_heads"]
         self.n_critic_heads: int = model["n_critic_heads"]
         self.confidence = model["confidence"]
+        self.confidence_kwargs = confidence_kwargs  # the strategy's own arguments, checked by the strategy
         self.mask_prob: float = model["mask_prob"]
-        self.alpha: float = args["alpha"]
-        self.decay: float = args["decay"]
-        self.temperature: float = args["temperature"]
-        self.temperature_mode: str = args["temperature_mode"]
-        self.confidence_lr: float = args["confidence_lr"]
-        self.confidence_baseline: bool = args["confidence_baseline"]
-        self.ucb_lambda: float = args["ucb_lambda"]
         self.train_heads: str = args["train_heads"]
         self.target_q: str = args["target_q"]
         self.policy_delay: int = args["policy_delay"]
@@ -380,15 +408,7 @@ class SOUP(OffPolicyAlgorithm):
             n_actor_heads=self.n_actor_heads,
             n_critic_heads=self.n_critic_heads,
             confidence=self.confidence,
-            confidence_kwargs=dict(
-                alpha=self.alpha,
-                decay=self.decay,
-                lr=self.confidence_lr,
-                temperature=self.temperature,
-                temperature_mode=self.temperature_mode,
-                baseline=self.confidence_baseline,
-                ucb_lambda=self.ucb_lambda,
-            ),
+            confidence_kwargs=self.confidence_kwargs,
         )
 
     def _setup_model(self) -> None:

@@ -23,7 +23,8 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     """
     Turn sampled values into SOUP's arguments: ``one_minus_gamma`` -> ``gamma``, ``batch_size_pow`` ->
     ``batch_size``, ``net_arch`` name -> ``policy_kwargs``, ``train_freq`` -> also ``gradient_steps`` (one gradient
-    step per env-step, as in the Zoo's TD3 sampler).
+    step per env-step, as in the Zoo's TD3 sampler), ``confidence_lr`` -> ``confidence_kwargs=dict(lr=...)`` (the
+    adaptive confidence's learning rate).
 
     :param sampled_params: the values of one trial (``trial.params``)
     :return: keyword arguments for ``SOUP``
@@ -37,6 +38,8 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         hyperparams["gradient_steps"] = hyperparams["train_freq"]
     if "net_arch" in hyperparams:
         hyperparams["policy_kwargs"] = dict(net_arch=NET_ARCHS[hyperparams.pop("net_arch")])
+    if "confidence_lr" in hyperparams:
+        hyperparams["confidence_kwargs"] = dict(lr=hyperparams.pop("confidence_lr"))
     return hyperparams
 
 

@@ -57,26 +57,24 @@ SETTINGS: dict[str, Any] = dict(
     noise_std=0.2,
     noise_decay=0.999995,
     noise_std_min=0.05,
-    alpha=0.5,
-    decay=0.9995,
-    temperature=1.0,
-    temperature_mode="absolute",
-    confidence_lr=1e-4,
     target_q="own",
     policy_delay=1,
     target_policy_noise=0.0,
-    confidence_baseline=True,
     policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
 )
 WARMUP = SETTINGS["learning_starts"]  # the first steps act at random: no network is involved
+# Every argument of each strategy (the no-confidence presets have none)
+ADAPTIVE = dict(lr=1e-4, temperature=1.0, temperature_mode="absolute", baseline=True)
 CASES: dict[str, dict[str, Any]] = {
     **{
-        f"{preset}-{scheme}": dict(preset=preset, train_heads=scheme)
+        f"{preset}-{scheme}": dict(
+            preset=preset, train_heads=scheme, **({"confidence_kwargs": ADAPTIVE} if preset == "soup" else {})
+        )
         for preset in ("ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup")
         for scheme in ("active", "all")
     },
-    "fixed-active": dict(confidence="fixed", train_heads="active"),
-    "decayed-active": dict(confidence="decayed", train_heads="active"),
+    "fixed-active": dict(confidence="fixed", confidence_kwargs=dict(alpha=0.5), train_heads="active"),
+    "decayed-active": dict(confidence="decayed", confidence_kwargs=dict(decay=0.9995), train_heads="active"),
 }
 ACTION_BOUND = 2.0  # Pendulum-v1's largest torque: the scale of its actions
 

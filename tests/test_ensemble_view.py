@@ -15,7 +15,7 @@ MODELS = {
     "multi_ddpg": dict(preset="multi_ddpg"),
     "soup": dict(preset="soup"),
     "fixed": dict(confidence="fixed"),
-    "ucb": dict(confidence="ucb", ucb_lambda=2.0),
+    "ucb": dict(confidence="ucb", confidence_kwargs=dict(ucb_lambda=2.0)),
 }
 
 
@@ -87,7 +87,7 @@ def test_unbatched_observation_drops_the_batch_dimension(trained):
 
 def test_explore_view_shows_the_ucb_bonus():
     """With explore=True the weights are the strategy's exploration weights: UCB's mean + lambda * std of the heads."""
-    model = SOUP("MlpPolicy", "Pendulum-v1", **SMALL, confidence="ucb", ucb_lambda=2.0).learn(60)
+    model = SOUP("MlpPolicy", "Pendulum-v1", **SMALL, confidence="ucb", confidence_kwargs=dict(ucb_lambda=2.0)).learn(60)
     obs = observations(model)
     greedy, optimistic = model.policy.ensemble_view(obs), model.policy.ensemble_view(obs, explore=True)
     np.testing.assert_array_equal(greedy.q_matrix, optimistic.q_matrix)

@@ -162,7 +162,14 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
 
 def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
     """Two envs, all-heads training, decayed confidence; SB3's way of resuming (same files) gives another run."""
-    kwargs = dict(n_heads=3, train_heads="all", confidence="decayed", decay=0.99, learning_starts=30, batch_size=16)
+    kwargs = dict(
+        n_heads=3,
+        train_heads="all",
+        confidence="decayed",
+        confidence_kwargs=dict(decay=0.99),
+        learning_starts=30,
+        batch_size=16,
+    )
     kwargs.update(buffer_size=1000, policy_kwargs=TINY, seed=5)
 
     def new_env():

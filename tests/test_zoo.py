@@ -159,7 +159,7 @@ def test_sampled_hyperparameters_build_soup():
         assert convert_soup_params(trial.params) == kwargs
         assert 64 <= kwargs["batch_size"] <= 1024 and 0.97 <= kwargs["gamma"] < 1
         assert kwargs["gradient_steps"] == kwargs["train_freq"]
-        assert ("confidence_lr" in kwargs) == (kwargs["confidence"] == "adaptive")
+        assert ("confidence_kwargs" in kwargs) == (kwargs["confidence"] == "adaptive")
         seen.add(kwargs["confidence"])
         model = SOUP(env=ENV_ID, policy="MlpPolicy", buffer_size=1000, **kwargs)
         assert model.policy is not None
