@@ -276,6 +276,8 @@ class BootstrappedNStepReplayBuffer(_MaskStorage, NStepReplayBuffer):
         n_masks: int = 1,
         mask_prob: float = 1.0,
     ):
+        # SB3's NStepReplayBuffer fails on these without naming n_steps
+        n_steps = integer(1, "steps of the n-step returns")("n_steps", n_steps)
         if optimize_memory_usage:
             raise ValueError(
                 "optimize_memory_usage=True is not supported with n-step returns (SB3's NStepReplayBuffer does not support "

@@ -346,8 +346,6 @@ class SOUPPolicy(BasePolicy):
         self.n_critic_heads = n_critic_heads
         self.confidence_spec = check_confidence(confidence)
         self.confidence_kwargs = confidence_kwargs  # checked by make_confidence, with the strategy's own arguments
-        # std of the Gaussian noise added by predict(deterministic=False), set by the algorithm's schedule
-        self.current_noise_std = 0.0
         self.share_features_extractor = share_features_extractor
         self._build(lr_schedule)
 
@@ -545,10 +543,8 @@ class SOUPPolicy(BasePolicy):
         return self._predict(observation, deterministic=deterministic)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        actions = self.select(observation, explore=not deterministic).actions  # (B, A) in [-1, 1]
-        if not deterministic and self.current_noise_std > 0:
-            actions = (actions + self.current_noise_std * th.randn_like(actions)).clamp(-1.0, 1.0)
-        return actions
+        # no noise (as TD3's): the algorithm adds its action_noise while learning
+        return self.select(observation, explore=not deterministic).actions  # (B, A) in [-1, 1]
 
     def set_training_mode(self, mode: bool) -> None:
         """

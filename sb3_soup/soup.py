@@ -33,6 +33,7 @@ from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
 from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
+from sb3_soup.noise import default_action_noise, noise_std
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
@@ -55,8 +56,6 @@ __version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip(
 SAVE_FORMAT_VERSION = 2
 """Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
 parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
-# The built-in exploration noise's defaults: a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG
-DEFAULT_NOISE: dict[str, float] = dict(noise_std=0.1, noise_decay=1.0, noise_std_min=0.0)
 _NOT_GIVEN = object()
 # SOUP's arguments of its policy, passed by SOUP besides policy_kwargs (see SOUP._policy_arguments)
 _POLICY_ARGUMENTS = ("n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs")
@@ -104,8 +103,8 @@ def _integer(meaning: str) -> Rule:
 def _action_noise(name: str, value: Any) -> Any:
     if value is not None and not isinstance(value, ActionNoise):
         raise ValueError(
-            f"{name} must be None (the built-in Gaussian noise: noise_std, noise_decay, noise_std_min) or an "
-            f"instance of stable_baselines3.common.noise.ActionNoise, {given(value)}"
+            f"{name} must be None (SOUP's N(0, 0.1), see sb3_soup.noise.default_action_noise) or an instance of "
+            f"stable_baselines3.common.noise.ActionNoise (e.g. sb3_soup.DecayingNormalActionNoise), {given(value)}"
         )
     return value
 
@@ -119,9 +118,6 @@ ARGUMENT_RULES: dict[str, Rule] = {
     "policy_delay": integer(1, "critic updates per actor and target update"),
     "target_policy_noise": number(0.0, math.inf, False, True, "std of the target action's smoothing noise, 0: none"),
     "target_noise_clip": number(0.0, math.inf, False, True, "limit of the target action's smoothing noise"),
-    "noise_std": number(0.0, math.inf, False, True, "initial exploration noise std"),
-    "noise_decay": number(0.0, 1.0, True, False, "noise std decay per env step"),
-    "noise_std_min": number(0.0, math.inf, False, True, "lowest exploration noise std"),
     "check_finite": boolean("raise at the first NaN/inf observation, reward, Q value or loss"),
     "replay_buffer_kwargs": keyword_dict(
         {"n_masks", "mask_prob"}, "replay buffer", "SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
@@ -131,6 +127,7 @@ ARGUMENT_RULES: dict[str, Rule] = {
     ),
     # SB3's arguments are SB3's to check, but for those SB3 would fail on without naming them
     "buffer_size": _integer("replay buffer size"),
+    "n_steps": _integer("steps of the n-step returns, 1 or less: one-step TD targets"),
     "seed": _seed,
     "action_noise": _action_noise,
 }
@@ -143,25 +140,6 @@ def check_arguments(**kwargs: Any) -> dict[str, Any]:
     :return: the arguments, each checked by its rule (numbers as Python ``int``/``float``/``bool``)
     """
     return {name: (ARGUMENT_RULES[name](name, value) if name in ARGUMENT_RULES else value) for name, value in kwargs.items()}
-
-
-def check_noise(action_noise: ActionNoise | None, noise_args: dict[str, float]) -> None:
-    """
-    One rule for the exploration noise: an ``action_noise`` replaces the built-in Gaussian noise (``noise_std``,
-    ``noise_decay``, ``noise_std_min``), as a TD3 or DDPG script expects; a warning when both were set.
-
-    :param action_noise: SOUP's ``action_noise``
-    :param noise_args: the built-in noise's arguments as given
-    """
-    changed = {name: value for name, value in noise_args.items() if value != DEFAULT_NOISE[name]}
-    if action_noise is not None and changed:
-        settings = ", ".join(f"{name}={value!r}" for name, value in changed.items())
-        warnings.warn(
-            f"action_noise={action_noise} replaces SOUP's built-in Gaussian noise: {settings} are unused. Pass one of them: "
-            "action_noise (SB3's noise, added to the E-action as TD3 adds it) or noise_std/noise_decay/noise_std_min",
-            UserWarning,
-            stacklevel=3,
-        )
 
 
 def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
@@ -203,9 +181,10 @@ class SOUP(OffPolicyAlgorithm):
     :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
         like ``(5, "step")`` or ``(2, "episode")``.
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
-    :param action_noise: an SB3 ``ActionNoise``, added to the E-action in the [-1, 1] scaled action space as SB3's TD3
-        and DDPG add it; when given it replaces the built-in Gaussian noise (``noise_std``, ``noise_decay`` and
-        ``noise_std_min`` are then unused, with a warning if they were set)
+    :param action_noise: the exploration noise, an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] scaled
+        action space as SB3's TD3 and DDPG add it (none during the random warm-up); None (SOUP's rule, unlike TD3's):
+        a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG (:func:`sb3_soup.noise.default_action_noise`). A decaying
+        std (the paper mode's): :class:`sb3_soup.DecayingNormalActionNoise`
     :param replay_buffer_class: Replay buffer class to use: one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
         ``HerReplayBuffer`` (for instance), ``NStepReplayBuffer``, for which SOUP builds their bootstrapped versions
         (see :mod:`sb3_soup.buffers`: they store the masks), or a subclass of those. If ``None``, it will be
@@ -242,10 +221,6 @@ class SOUP(OffPolicyAlgorithm):
     :param target_policy_noise: std of the Gaussian noise added to the target actions (TD3's target policy smoothing;
         the paper: 0, none), in the [-1, 1] scaled action space
     :param target_noise_clip: limit of the absolute value of that noise
-    :param noise_std: initial std of the built-in Gaussian exploration noise (in the [-1, 1] scaled action space;
-        default 0.1 constant, the RL Zoo's N(0, 0.1) for TD3 and DDPG); unused when ``action_noise`` is given
-    :param noise_decay: multiplicative decay of the noise std per environment step, in (0, 1] (1: constant)
-    :param noise_std_min: the noise std never goes below this
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
@@ -302,9 +277,6 @@ class SOUP(OffPolicyAlgorithm):
         policy_delay: int = 1,
         target_policy_noise: float = 0.0,
         target_noise_clip: float = 0.5,
-        noise_std: float = DEFAULT_NOISE["noise_std"],
-        noise_decay: float = DEFAULT_NOISE["noise_decay"],
-        noise_std_min: float = DEFAULT_NOISE["noise_std_min"],
         check_finite: bool = True,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -316,7 +288,6 @@ class SOUP(OffPolicyAlgorithm):
     ):
         model = resolve_model(n_heads, n_actor_heads, n_critic_heads, preset, confidence, mask_prob)
         args = check_arguments(**{name: value for name, value in locals().items() if name in ARGUMENT_RULES})
-        check_noise(action_noise, {name: args[name] for name in DEFAULT_NOISE})
         super().__init__(
             policy,
             env,
@@ -328,7 +299,7 @@ class SOUP(OffPolicyAlgorithm):
             gamma,
             train_freq,
             gradient_steps,
-            action_noise=action_noise,
+            action_noise=args["action_noise"],  # None: SOUP's default, built by _setup_model
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),  # a copy: the masks' arguments are added to it
             optimize_memory_usage=optimize_memory_usage,
@@ -356,11 +327,7 @@ class SOUP(OffPolicyAlgorithm):
         self.policy_delay: int = args["policy_delay"]
         self.target_policy_noise: float = args["target_policy_noise"]
         self.target_noise_clip: float = args["target_noise_clip"]
-        self.noise_std: float = args["noise_std"]
-        self.noise_decay: float = args["noise_decay"]
-        self.noise_std_min: float = args["noise_std_min"]
         self.check_finite: bool = args["check_finite"]
-        self.current_noise_std = self.noise_std
         # Saved with the model: which sb3-soup wrote it, in which save format (checked by SOUP.load)
         self._sb3_soup_format = SAVE_FORMAT_VERSION
         self._sb3_soup_version = __version__
@@ -439,7 +406,9 @@ class SOUP(OffPolicyAlgorithm):
         # None: the critic follows learning_rate (self.lr_schedule, read at each training round, as SB3 reads it)
         self.critic_lr_schedule = None if self.critic_learning_rate is None else _as_schedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self._critic_lr_schedule()(1))
-        self._update_noise_std()
+        if self.action_noise is None:  # SOUP's rule: N(0, 0.1) (a loaded model has the noise it was saved with)
+            assert self.action_space.shape is not None
+            self.action_noise = default_action_noise(self.action_space.shape)
 
     def _critic_lr_schedule(self) -> Schedule:
         """The critic's learning rate schedule: ``critic_learning_rate``'s, or ``learning_rate``'s when it is None."""
@@ -453,15 +422,6 @@ class SOUP(OffPolicyAlgorithm):
 
     # ----- acting (Algorithm 1) ---------------------------------------------------------------------------------
 
-    def _update_noise_std(self) -> None:
-        """
-        Gaussian noise std after ``num_timesteps`` env-steps: ``max(noise_std_min, noise_std * noise_decay ** t)``; 0
-        when an ``action_noise`` replaces the built-in noise (then ``predict(deterministic=False)`` adds none, as TD3's).
-        """
-        builtin = max(self.noise_std_min, self.noise_std * self.noise_decay**self.num_timesteps)
-        self.current_noise_std = builtin if self.action_noise is None else 0.0
-        self.policy.current_noise_std = self.current_noise_std
-
     def _draw_active_pairs(self, envs: np.ndarray) -> None:
         """Algorithm 1: every episode starts with a randomly selected head pair (one per env)."""
         assert self._active_pairs is not None
@@ -470,9 +430,10 @@ class SOUP(OffPolicyAlgorithm):
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
-        """E-action of the ensemble for every env (eq. 7), plus exploration noise; random actions during warm-up."""
+        """E-action of the ensemble for every env (eq. 7), plus exploration noise; random actions (without noise) during
+        the warm-up."""
         if self.num_timesteps < learning_starts:
-            return super()._sample_action(learning_starts, action_noise, n_envs)
+            return super()._sample_action(learning_starts, None, n_envs)
         assert self._last_obs is not None, "self._last_obs was not set"
         obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
         with th.no_grad():
@@ -486,10 +447,7 @@ class SOUP(OffPolicyAlgorithm):
         # (n_envs, *action_shape) in [-1, 1], as SB3's predict shapes actions (the buffer stores them flat)
         scaled_action = selection.actions.cpu().numpy().reshape((-1, *action_shape))
         if action_noise is not None:
-            noise = action_noise()
-        else:
-            noise = np.random.normal(0.0, self.current_noise_std, size=scaled_action.shape)
-        scaled_action = np.clip(scaled_action + noise, -1.0, 1.0)
+            scaled_action = np.clip(scaled_action + action_noise(), -1.0, 1.0)
         return self.policy.unscale_action(scaled_action), scaled_action
 
     def _store_transition(
@@ -515,9 +473,6 @@ class SOUP(OffPolicyAlgorithm):
         )
         self._last_selection = None
         self._draw_active_pairs(np.flatnonzero(dones))
-
-    def _on_step(self) -> None:
-        self._update_noise_std()
 
     # ----- training -------------------------------------------------------------------------------------------
 
@@ -581,7 +536,9 @@ class SOUP(OffPolicyAlgorithm):
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_learning_rate", critic_lr)
-        self.logger.record("train/noise_std", self.current_noise_std)
+        exploration_std = noise_std(self.action_noise)  # a DecayingNormalActionNoise's (SOUP's default is one)
+        if exploration_std is not None:
+            self.logger.record("train/noise_std", exploration_std)
         if critic_losses:
             self.logger.record("train/critic_loss", np.mean(critic_losses))
         if actor_losses:
@@ -661,7 +618,6 @@ class SOUP(OffPolicyAlgorithm):
             self._active_pairs = np.zeros(self.n_envs, dtype=np.int64)
             self._draw_active_pairs(np.arange(self.n_envs))  # new episodes
             self._last_selection = None
-        self._update_noise_std()
         return result
 
     def learn(
