@@ -316,7 +316,7 @@ class SOUP(OffPolicyAlgorithm):
         )
         self.critic_learning_rate = args["critic_learning_rate"]
         self.n_heads: int = model["n_heads"]
-        self.preset_name: str | None = model["preset"]
+        self.preset: str | None = model["preset"]  # the key of sb3_soup.PRESETS (or None)
         self.n_actor_heads: int = model["n_actor_heads"]
         self.n_critic_heads: int = model["n_critic_heads"]
         self.confidence = model["confidence"]
@@ -341,26 +341,6 @@ class SOUP(OffPolicyAlgorithm):
 
         if _init_setup_model:
             self._setup_model()
-
-    @classmethod
-    def preset_names(cls) -> list[str]:
-        """Names accepted by :meth:`preset` and the ``preset`` argument."""
-        from sb3_soup.presets import PRESETS
-
-        return sorted(PRESETS)
-
-    @classmethod
-    def preset(cls: type[SelfSOUP], name: str, policy: str | type[SOUPPolicy], env: GymEnv | str, **kwargs: Any) -> SelfSOUP:
-        """
-        One of the paper's models (Figure 1): ``SOUP.preset("dbddpg", "MlpPolicy", env, n_heads=5)``
-        is ``SOUP("MlpPolicy", env, n_heads=5, preset="dbddpg")``.
-
-        :param name: "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg" or "soup"
-        :param policy: the policy (see :class:`SOUP`)
-        :param env: the environment (see :class:`SOUP`)
-        :param kwargs: any other argument of :class:`SOUP`
-        """
-        return cls(policy, env, preset=name, **kwargs)
 
     def _get_policy_from_name(self, policy_name: str) -> type[BasePolicy]:
         if policy_name not in self.policy_aliases:

@@ -155,7 +155,7 @@ def test_other_head_counts_and_presets_load_as_saved(tmp_path, kwargs):
         "n_heads",
         "n_actor_heads",
         "n_critic_heads",
-        "preset_name",
+        "preset",
         "confidence",
         "confidence_kwargs",
         "mask_prob",

@@ -32,7 +32,8 @@ class DictPendulum(gym.ObservationWrapper):
 @pytest.mark.parametrize("preset", sorted(PRESETS))
 @pytest.mark.parametrize("train_heads", ["active", "all"])
 def test_every_preset_learns_a_few_hundred_steps(preset, train_heads):
-    model = SOUP.preset(preset, "MlpPolicy", "Pendulum-v1", n_heads=3, train_heads=train_heads, seed=0, **SMALL)
+    model = SOUP("MlpPolicy", "Pendulum-v1", preset=preset, n_heads=3, train_heads=train_heads, seed=0, **SMALL)
+    assert model.preset == preset
     model.learn(250)
     assert model.num_timesteps == 250
     expected_heads = {k: (3 if v == "K" else v) for k, v in PRESETS[preset].items() if k.startswith("n_")}
@@ -239,7 +240,7 @@ def test_invalid_arguments_name_the_parameter(kwargs, parameter):
 
 def test_preset_names_are_forgiving_and_explicit_settings_must_agree():
     model = SOUP("MlpPolicy", "Pendulum-v1", preset="MA-BDDPG", n_heads=4)
-    assert (model.n_actor_heads, model.n_critic_heads, model.confidence) == (1, 4, "none")
+    assert (model.n_actor_heads, model.n_critic_heads, model.confidence, model.preset) == (1, 4, "none", "ma_bddpg")
     assert SOUP("MlpPolicy", "Pendulum-v1", preset="ddpg").mask_prob == 1.0
     assert SOUP("MlpPolicy", "Pendulum-v1", preset="soup", confidence="adaptive").confidence == "adaptive"
     with pytest.raises(ValueError, match="preset='multi_ddpg' sets n_critic_heads=1"):
