@@ -4,7 +4,8 @@ its own, each confidence strategy its own), so that every argument is refused al
 "meaning")("alpha", value)``. Nothing here knows another module's arguments.
 
 Every check raises a ``ValueError`` that names the parameter, the accepted values and what was given (value and type),
-e.g. ``alpha must be a float in (0, 1) (fixed confidence of a head in its own candidate), got '0.5' (str)``.
+e.g. ``alpha must be a float in (0, 1) (FixedConfidence's confidence of a head in its own candidate), got '0.5'
+(str)``.
 Python and NumPy numbers are accepted alike (``np.float32(0.5)``, ``np.int64(3)``); ``bool`` is never taken for a number.
 """
 
