@@ -46,11 +46,11 @@ def make_model(algo: str, env: Any, seed: int) -> Any:
     from sb3_soup import SOUP
 
     kwargs = dict(COMMON, replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(HER_KWARGS), seed=seed, verbose=0)
-    if algo == "soup":
-        soup_kwargs = dict(critic_learning_rate=COMMON["learning_rate"], noise_std=0.1, policy_kwargs=dict(net_arch=SOUP_ARCH))
-        return SOUP("MultiInputPolicy", env, **soup_kwargs, **kwargs)
     n_actions = env.action_space.shape[0]
     noise = NormalActionNoise(np.zeros(n_actions), 0.1 * np.ones(n_actions))
+    if algo == "soup":  # SOUP's default noise is N(0, 0.1) as well (a DecayingNormalActionNoise of decay 1)
+        soup_kwargs = dict(critic_learning_rate=COMMON["learning_rate"], policy_kwargs=dict(net_arch=SOUP_ARCH))
+        return SOUP("MultiInputPolicy", env, **soup_kwargs, **kwargs)
     algo_class = {"ddpg": DDPG, "td3": TD3}[algo]
     return algo_class("MultiInputPolicy", env, action_noise=noise, policy_kwargs=dict(net_arch=MLP), **kwargs)
 

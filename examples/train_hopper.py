@@ -23,8 +23,9 @@ from sb3_soup.checkpoint import ResumableCheckpointCallback, latest_checkpoint, 
 
 # Both with the RL Zoo's MuJoCo warm-up: 10k uniformly random steps before learning
 SETTINGS = {
-    "defaults": dict(learning_starts=10_000),  # SOUP's defaults (hyperparams/soup.yml's Hopper-v4 entry)
-    "paper": dict(paper_settings(), learning_starts=10_000),  # Section 5 of the paper (hyperparams/soup_paper.yml)
+    "defaults": lambda env: dict(learning_starts=10_000),  # SOUP's defaults (hyperparams/soup.yml's Hopper-v4 entry)
+    # Section 5 of the paper (hyperparams/soup_paper.yml)
+    "paper": lambda env: dict(paper_settings(env.action_space), learning_starts=10_000),
 }
 
 
@@ -62,7 +63,7 @@ def main() -> None:
             device=args.device,
             tensorboard_log=str(logdir / "tensorboard"),
             verbose=1,
-            **SETTINGS[args.settings],
+            **SETTINGS[args.settings](env),
         )
     callbacks = [
         EvalCallback(

@@ -18,6 +18,7 @@ from sb3_soup.confidence import (
     UCBConfidence,
 )
 from sb3_soup.export import export_onnx
+from sb3_soup.noise import DecayingNormalActionNoise
 from sb3_soup.policies import CnnPolicy, EnsembleView, MlpPolicy, MultiInputPolicy, ObservationSpaceError, SOUPPolicy
 from sb3_soup.presets import PRESETS, paper_settings
 from sb3_soup.soup import SOUP
@@ -39,6 +40,7 @@ __all__ = [
     "ConfidenceStep",
     "ConfidenceStrategy",
     "DecayedConfidence",
+    "DecayingNormalActionNoise",
     "EnsembleView",
     "FixedConfidence",
     "MlpPolicy",

@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.her.goal_selection_strategy import GoalSelectionStrategy
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
-from sb3_soup.validation import check
+from sb3_soup.validation import integer, number
 
 
 class BootstrappedReplayBufferSamples(NamedTuple):
@@ -54,7 +54,10 @@ class _MaskStorage:
     masks: np.ndarray  # (buffer_size, n_envs, K) bool
 
     def _init_masks(self, n_masks: int, mask_prob: float) -> None:
-        n_masks, mask_prob = check("n_masks", n_masks), check("mask_prob", mask_prob)
+        n_masks = integer(1, "the number of bootstrapped head pairs")("n_masks", n_masks)
+        mask_prob = number(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off")(
+            "mask_prob", mask_prob
+        )
         self.n_masks = int(n_masks)
         self.mask_prob = float(mask_prob)
         self.masks = np.ones((self.buffer_size, self.n_envs, self.n_masks), dtype=bool)
@@ -273,7 +276,8 @@ class BootstrappedNStepReplayBuffer(_MaskStorage, NStepReplayBuffer):
         n_masks: int = 1,
         mask_prob: float = 1.0,
     ):
-        n_steps, gamma = check("n_steps", n_steps), check("gamma", gamma)
+        # SB3's NStepReplayBuffer fails on these without naming n_steps
+        n_steps = integer(1, "steps of the n-step returns")("n_steps", n_steps)
         if optimize_memory_usage:
             raise ValueError(
                 "optimize_memory_usage=True is not supported with n-step returns (SB3's NStepReplayBuffer does not support "

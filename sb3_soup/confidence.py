@@ -8,6 +8,8 @@ The E-Q value of candidate k is ``v[k] = sum_i W[i, k] * V[i, k]`` where ``V[i, 
 Write your own by subclassing :class:`ConfidenceStrategy` and implementing :meth:`ConfidenceStrategy.weights`.
 """
 
+import inspect
+import math
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -19,13 +21,14 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_soup.networks import mlp
-from sb3_soup.validation import CONFIDENCE_STRATEGIES, check
+from sb3_soup.validation import boolean, choice, given, integer, number
 
 if TYPE_CHECKING:
     from sb3_soup.policies import SOUPPolicy
 
 __all__ = [
     "CONFIDENCE_STRATEGIES",
+    "STRATEGIES",
     "AdaptiveConfidence",
     "ConfidenceStep",
     "ConfidenceStrategy",
@@ -127,7 +130,9 @@ class FixedConfidence(ConfidenceStrategy):
 
     def __init__(self, alpha: float = 0.5):
         super().__init__()
-        self.alpha = check("alpha", alpha)
+        self.alpha = number(0.0, 1.0, True, True, "FixedConfidence's confidence of a head in its own candidate")(
+            "alpha", alpha
+        )
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         alpha = th.tensor(self.alpha, device=q_matrix.device)
@@ -146,7 +151,7 @@ class DecayedConfidence(ConfidenceStrategy):
 
     def __init__(self, decay: float = 0.9995):
         super().__init__()
-        self.decay = check("decay", decay)
+        self.decay = number(0.0, 1.0, True, False, "DecayedConfidence's decay per env step")("decay", decay)
         self.register_buffer("n_steps", th.zeros((), dtype=th.float64))
 
     @property
@@ -175,7 +180,7 @@ class UCBConfidence(ConfidenceStrategy):
 
     def __init__(self, ucb_lambda: float = 1.0):
         super().__init__()
-        self.ucb_lambda = check("ucb_lambda", ucb_lambda)
+        self.ucb_lambda = number(0.0, math.inf, False, True, "UCBConfidence's weight of the bonus")("ucb_lambda", ucb_lambda)
 
     def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
         return th.full((1, self.n_critic_heads, self.n_actor_heads), 1.0 / self.n_critic_heads, device=q_matrix.device)
@@ -233,6 +238,9 @@ class ConfidenceNetwork(BaseModel):
         return th.sigmoid(self.out(self.net(features))).clamp(self.eps, 1.0)  # (B, Kc)
 
 
+TEMPERATURE_MODES = ("absolute", "relative")
+
+
 class AdaptiveConfidence(ConfidenceStrategy):
     """
     Self-adaptive confidence (the paper's "SAC", eq. 8): ``W[i, k] = c_i(s)`` from a confidence network,
@@ -250,6 +258,8 @@ class AdaptiveConfidence(ConfidenceStrategy):
     :param baseline_rate: update rate of the running mean, in (0, 1]
     :param net_arch: hidden sizes of the confidence network (default [256, 128])
     :param eps: lower clamp of the confidence, in (0, 1)
+    :param max_rollout: the most selections kept for the next update (the oldest are dropped when no training round
+        comes to use them, e.g. ``gradient_steps=0``)
     """
 
     reward_baseline: th.Tensor
@@ -267,13 +277,18 @@ class AdaptiveConfidence(ConfidenceStrategy):
         max_rollout: int = 100_000,
     ):
         super().__init__()
-        self.lr = check("confidence_lr", lr)
-        self.temperature = check("temperature", temperature)
-        self.temperature_mode = check("temperature_mode", temperature_mode)
-        self.baseline = check("confidence_baseline", baseline)
-        self.baseline_rate = check("baseline_rate", baseline_rate)
-        self.eps = check("eps", eps)
-        self.max_rollout = max_rollout
+        where = "AdaptiveConfidence's "
+        self.lr = number(0.0, math.inf, True, True, where + "confidence network learning rate")("lr", lr)
+        self.temperature = number(0.0, math.inf, True, True, where + "softmax temperature")("temperature", temperature)
+        self.temperature_mode = choice(TEMPERATURE_MODES, where + "the temperature divides the E-Q values, or their spread")(
+            "temperature_mode", temperature_mode
+        )
+        self.baseline = boolean(where + "running-mean reward baseline in REINFORCE")("baseline", baseline)
+        self.baseline_rate = number(0.0, 1.0, True, False, where + "update rate of the baseline")(
+            "baseline_rate", baseline_rate
+        )
+        self.eps = number(0.0, 1.0, True, True, where + "lower clamp of the confidence")("eps", eps)
+        self.max_rollout = integer(1, where + "most selections kept between two updates")("max_rollout", max_rollout)
         self.net_arch = [256, 128] if net_arch is None else list(net_arch)
         self.register_buffer("reward_baseline", th.zeros(()))
         # 1.0 until the first update sets the baseline to its mean reward, then 0.0: a float (not a bool), as every
@@ -395,26 +410,79 @@ def check_update_logs(strategy: ConfidenceStrategy, logs: Any) -> dict[str, floa
     return logs
 
 
-def make_confidence(confidence: "str | ConfidenceStrategy", **kwargs: Any) -> ConfidenceStrategy:
+STRATEGIES: dict[str, type[ConfidenceStrategy]] = {
+    "none": NoConfidence,
+    "fixed": FixedConfidence,
+    "decayed": DecayedConfidence,
+    "adaptive": AdaptiveConfidence,
+    "ucb": UCBConfidence,
+}
+"""The strategies SOUP's ``confidence`` names; ``confidence_kwargs`` are the named class's own arguments."""
+CONFIDENCE_STRATEGIES = tuple(STRATEGIES)
+
+
+def _strategy_arguments(strategy_class: type[ConfidenceStrategy]) -> list[str]:
+    """The keyword arguments a strategy class takes (those of its ``__init__``)."""
+    keywords = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    parameters = inspect.signature(strategy_class.__init__).parameters.items()
+    return sorted(name for name, parameter in parameters if name != "self" and parameter.kind in keywords)
+
+
+def check_confidence(confidence: Any, name: str = "confidence") -> "str | ConfidenceStrategy":
     """
-    Build a strategy from its name (keyword arguments are passed to it; unused ones are ignored) or check a
+    :param confidence: a strategy's name (any case) or a :class:`ConfidenceStrategy` instance
+    :param name: the argument's name, for the message
+    :return: the name in lower case, or the instance
+    """
+    accepted = f"one of {CONFIDENCE_STRATEGIES} or an instance of a sb3_soup.ConfidenceStrategy subclass"
+    if isinstance(confidence, str):
+        if confidence.lower() not in STRATEGIES:
+            raise ValueError(f"{name} must be {accepted}, {given(confidence)}")
+        return confidence.lower()
+    if not isinstance(confidence, ConfidenceStrategy):
+        hint = (
+            " (it has a weights method: subclass sb3_soup.ConfidenceStrategy, an nn.Module, so that its state is saved)"
+            if callable(getattr(confidence, "weights", None))
+            else ""
+        )
+        raise ValueError(f"{name} must be {accepted} implementing weights(obs, q_matrix) -> W, {given(confidence)}{hint}")
+    if "_parameters" not in vars(confidence):
+        raise ValueError(
+            f"{name}: {type(confidence).__name__}.__init__ must call super().__init__() "
+            "(a ConfidenceStrategy is an nn.Module, whose state is saved with the policy)"
+        )
+    return confidence
+
+
+def make_confidence(
+    confidence: "str | ConfidenceStrategy", confidence_kwargs: dict[str, Any] | None = None
+) -> ConfidenceStrategy:
+    """
+    Build a strategy from its name and its own keyword arguments (the class's defaults for the others), or check a
     user's strategy object.
 
-    :param confidence: "none", "fixed", "decayed", "adaptive", "ucb", or a :class:`ConfidenceStrategy` instance
+    :param confidence: "none", "fixed", "decayed", "adaptive", "ucb" (see :data:`STRATEGIES`), or a
+        :class:`ConfidenceStrategy` instance
+    :param confidence_kwargs: the named strategy's arguments, e.g. ``dict(alpha=0.7)`` for "fixed" (None: its defaults);
+        none with an instance, which has its own
+    :return: the strategy
     """
-    confidence = check("confidence", confidence)
+    confidence = check_confidence(confidence)
+    if confidence_kwargs is not None and not isinstance(confidence_kwargs, dict):
+        raise ValueError(f"confidence_kwargs must be None or a dict of the strategy's arguments, {given(confidence_kwargs)}")
     if isinstance(confidence, ConfidenceStrategy):
+        if confidence_kwargs:
+            raise ValueError(
+                f"confidence_kwargs {sorted(confidence_kwargs)} cannot be given with a strategy instance "
+                f"({type(confidence).__name__}): set them when creating it"
+            )
         return confidence
-    builders = {
-        "none": lambda: NoConfidence(),
-        "fixed": lambda: FixedConfidence(alpha=kwargs.get("alpha", 0.5)),
-        "decayed": lambda: DecayedConfidence(decay=kwargs.get("decay", 0.9995)),
-        "ucb": lambda: UCBConfidence(ucb_lambda=kwargs.get("ucb_lambda", 1.0)),
-        "adaptive": lambda: AdaptiveConfidence(
-            lr=kwargs.get("lr", 1e-4),
-            temperature=kwargs.get("temperature", 1.0),
-            baseline=kwargs.get("baseline", True),
-            temperature_mode=kwargs.get("temperature_mode", "absolute"),
-        ),
-    }
-    return builders[confidence]()
+    strategy_class = STRATEGIES[confidence]
+    accepted = _strategy_arguments(strategy_class)
+    unknown = sorted(set(confidence_kwargs or {}) - set(accepted))
+    if unknown:
+        raise ValueError(
+            f"confidence_kwargs has unknown keys {unknown} for confidence={confidence!r}: {strategy_class.__name__} "
+            f"accepts {accepted}"
+        )
+    return strategy_class(**(confidence_kwargs or {}))

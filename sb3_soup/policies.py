@@ -13,10 +13,10 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, Combine
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_soup.confidence import ConfidenceStrategy, make_confidence
+from sb3_soup.confidence import ConfidenceStrategy, check_confidence, make_confidence
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, HeadIndex
 from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
-from sb3_soup.validation import check, check_head_counts
+from sb3_soup.validation import check_head_counts, integer
 
 # The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
 DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
@@ -170,7 +170,7 @@ def check_n_critics(n_critics: Any, n_critic_heads: int) -> None:
     :param n_critics: what the user passed in ``policy_kwargs``
     :param n_critic_heads: the policy's critic heads
     """
-    n_critics = check("n_critics", n_critics)
+    n_critics = integer(1, "SB3's number of critics; SOUP's critics are its n_critic_heads")("n_critics", n_critics)
     if n_critics > 1:
         warnings.warn(
             f"policy_kwargs n_critics={n_critics} is ignored: SOUP's critics are its {n_critic_heads} critic heads "
@@ -289,8 +289,9 @@ class SOUPPolicy(BasePolicy):
     :param activation_fn: Activation function (LeakyReLU, as in the paper)
     :param n_actor_heads: number of actor heads
     :param n_critic_heads: number of critic heads
-    :param confidence: confidence strategy: "none", "fixed", "decayed", "adaptive" or a ConfidenceStrategy
-    :param confidence_kwargs: keyword arguments of the named strategy (alpha, decay, lr, temperature, baseline)
+    :param confidence: confidence strategy: "none", "fixed", "decayed", "adaptive", "ucb" or a ConfidenceStrategy instance
+    :param confidence_kwargs: keyword arguments of the named strategy's class (e.g. ``dict(alpha=0.7)`` for "fixed", see
+        :data:`sb3_soup.confidence.STRATEGIES`); None with an instance
     :param features_extractor_class: Features extractor to use.
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor.
     :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
@@ -341,8 +342,7 @@ class SOUPPolicy(BasePolicy):
             squash_output=True,
             normalize_images=normalize_images,
         )
-        n_actor_heads, n_critic_heads = check("n_actor_heads", n_actor_heads), check("n_critic_heads", n_critic_heads)
-        check_head_counts(n_actor_heads, n_critic_heads)
+        n_actor_heads, n_critic_heads = check_head_counts(n_actor_heads, n_critic_heads)
         if not (isinstance(activation_fn, type) and issubclass(activation_fn, nn.Module)):
             raise ValueError(
                 f"activation_fn must be an nn.Module class such as nn.LeakyReLU (the class, not an instance), "
@@ -353,11 +353,9 @@ class SOUPPolicy(BasePolicy):
         self.activation_fn = activation_fn
         self.n_actor_heads = n_actor_heads
         self.n_critic_heads = n_critic_heads
-        self.confidence_spec = confidence
-        self.confidence_kwargs = {} if confidence_kwargs is None else dict(confidence_kwargs)
+        self.confidence_spec = check_confidence(confidence)
+        self.confidence_kwargs = confidence_kwargs  # checked by make_confidence, with the strategy's own arguments
         self.share_features_extractor = share_features_extractor
-        # std of the Gaussian noise added by predict(deterministic=False), set by the algorithm's schedule
-        self.current_noise_std = 0.0
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -380,7 +378,7 @@ class SOUPPolicy(BasePolicy):
             )
             target.set_training_mode(False)
             target.requires_grad_(False)
-        self.confidence = make_confidence(self.confidence_spec, **self.confidence_kwargs)
+        self.confidence = make_confidence(self.confidence_spec, self.confidence_kwargs)
         self.confidence.setup(self)
 
     def make_actor(self) -> EnsembleActor:
@@ -554,10 +552,8 @@ class SOUPPolicy(BasePolicy):
         return self._predict(observation, deterministic=deterministic)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        actions = self.select(observation, explore=not deterministic).actions  # (B, A) in [-1, 1]
-        if not deterministic and self.current_noise_std > 0:
-            actions = (actions + self.current_noise_std * th.randn_like(actions)).clamp(-1.0, 1.0)
-        return actions
+        # no noise (as TD3's): the algorithm adds its action_noise while learning
+        return self.select(observation, explore=not deterministic).actions  # (B, A) in [-1, 1]
 
     def set_training_mode(self, mode: bool) -> None:
         """

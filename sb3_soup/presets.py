@@ -14,7 +14,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from sb3_soup.validation import check, check_arguments
+from gymnasium import spaces
+
+from sb3_soup.validation import check_head_counts, integer, number
 
 # Values are either numbers or "K" (replaced by n_heads)
 PRESETS: dict[str, dict[str, Any]] = {
@@ -30,18 +32,15 @@ DEFAULT_CONFIDENCE = "adaptive"
 DEFAULT_MASK_PROB = 0.5
 
 
-def paper_settings() -> dict[str, Any]:
-    """
-    The paper's hyper-parameters and update (Section 5 and Algorithm 1), for ``SOUP(policy, env, **paper_settings())``:
-    Adam with actor lr 1e-4 and critic lr 3e-4, gamma 0.99, tau 1e-3, batch 1024, a replay memory of 1e6, the paper's
-    networks (actor (256, **128**), critic (256, 256, **128**), LeakyReLU), one randomly drawn head pair trained per
-    episode on its own target, no delayed or smoothed updates, the adaptive confidence's selection read as
-    ``softmax(v / temperature)`` (eq. 8). Not in the paper, our choices: Gaussian exploration
-    noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per step down to 0.05, 1000 random steps first, and
-    the confidence network's lr 1e-4. K is the user's (the paper: 5 or 10), as are the preset and the mask probability
-    (not in the paper; the model's default, :data:`DEFAULT_MASK_PROB`).
+PAPER_NOISE: dict[str, Any] = dict(noise_type="decaying_normal", noise_std=0.2, noise_decay=0.999995, noise_std_min=0.05)
+"""The paper mode's exploration noise in the RL Zoo's keys (``hyperparams/soup_paper.yml``'s): Gaussian, of std 0.2 in
+the [-1, 1] action scale decayed by 0.999995 per step down to 0.05 (a :class:`sb3_soup.DecayingNormalActionNoise`)."""
 
-    :return: SOUP constructor arguments
+
+def paper_hyperparams() -> dict[str, Any]:
+    """
+    :return: :func:`paper_settings` with the exploration noise as the RL Zoo's keys (:data:`PAPER_NOISE`), as
+        ``hyperparams/soup_paper.yml`` writes them (the experiment runner and the Zoo build the noise from them)
     """
     return dict(
         learning_rate=1e-4,
@@ -55,13 +54,33 @@ def paper_settings() -> dict[str, Any]:
         target_q="own",
         policy_delay=1,
         target_policy_noise=0.0,
-        noise_std=0.2,
-        noise_decay=0.999995,
-        noise_std_min=0.05,
-        confidence_lr=1e-4,
-        temperature_mode="absolute",
+        **PAPER_NOISE,
         policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
     )
+
+
+def paper_settings(action_space: spaces.Space) -> dict[str, Any]:
+    """
+    The paper's hyper-parameters and update (Section 5 and Algorithm 1), for
+    ``SOUP(policy, env, **paper_settings(env.action_space))``: Adam with actor lr 1e-4 and critic lr 3e-4, gamma 0.99,
+    tau 1e-3, batch 1024, a replay memory of 1e6, the paper's networks (actor (256, **128**), critic (256, 256,
+    **128**), LeakyReLU), one randomly drawn head pair trained per episode on its own target, no delayed or smoothed
+    updates, the adaptive confidence's selection read as ``softmax(v / temperature)`` (eq. 8). Not in the paper, our
+    choices: Gaussian exploration noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per step down to 0.05
+    (``action_noise``, a :class:`sb3_soup.DecayingNormalActionNoise`, which needs the action space's shape), 1000 random
+    steps first, and the confidence network's lr 1e-4 (with the selection's ``temperature_mode="absolute"``,
+    :class:`AdaptiveConfidence`'s defaults, so that these settings go with any preset and strategy). K is the user's (the
+    paper: 5 or 10), as are the preset and the mask probability (not in the paper; the model's default,
+    :data:`DEFAULT_MASK_PROB`).
+
+    :param action_space: the environment's action space (``env.action_space``)
+    :return: SOUP constructor arguments
+    """
+    from sb3_soup.noise import zoo_action_noise
+
+    if action_space.shape is None:
+        raise ValueError(f"action_space must be the environment's Box action space, got {action_space!r}")
+    return zoo_action_noise(paper_hyperparams(), action_space.shape)
 
 
 def hyperparams_file(name: str = "soup") -> Path:
@@ -104,10 +123,13 @@ def resolve_model(
 
     :return: ``n_heads``, ``n_actor_heads``, ``n_critic_heads``, ``confidence``, ``mask_prob`` and ``preset`` (its key)
     """
-    given = check_arguments(n_actor_heads=n_actor_heads, n_critic_heads=n_critic_heads, confidence=confidence)
+    n_heads = integer(1, "number of bootstrapped heads K")("n_heads", n_heads)
+    given = dict(n_actor_heads=n_actor_heads, n_critic_heads=n_critic_heads, confidence=confidence, mask_prob=mask_prob)
+    if isinstance(confidence, str):
+        given["confidence"] = confidence.lower()  # checked by the policy, which builds the strategy
     if mask_prob is not None:
-        given["mask_prob"] = check("mask_prob", mask_prob)
-    n_heads = check("n_heads", n_heads)
+        meaning = "probability that a head sees a transition; 1 turns bootstrap off"
+        given["mask_prob"] = number(0.0, 1.0, True, False, meaning)("mask_prob", mask_prob)
     settings: dict[str, Any] = dict(
         n_actor_heads=n_heads, n_critic_heads=n_heads, confidence=DEFAULT_CONFIDENCE, mask_prob=DEFAULT_MASK_PROB
     )
@@ -118,4 +140,7 @@ def resolve_model(
                 raise ValueError(f"preset={preset!r} sets {key}={value!r}, but {key}={given[key]!r} was given: drop one")
             settings[key] = value
     settings.update({key: value for key, value in given.items() if value is not None})
+    settings["n_actor_heads"], settings["n_critic_heads"] = check_head_counts(
+        settings["n_actor_heads"], settings["n_critic_heads"]
+    )
     return dict(settings, preset=preset, n_heads=n_heads)

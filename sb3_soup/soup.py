@@ -1,6 +1,7 @@
 """SOUP: Self-Adaptive Double Bootstrapped DDPG, as a Stable-Baselines3 off-policy algorithm."""
 
 import io
+import math
 import pathlib
 import warnings
 from typing import Any, ClassVar, TypeVar
@@ -31,18 +32,31 @@ from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
 from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
+from sb3_soup.noise import default_action_noise, noise_std
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
-from sb3_soup.validation import check_arguments, check_finite_env_output
+from sb3_soup.validation import (
+    Rule,
+    boolean,
+    check_finite_env_output,
+    choice,
+    given,
+    integer,
+    is_int,
+    is_number,
+    keyword_dict,
+    number,
+    optional,
+)
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
 __version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip()
 SAVE_FORMAT_VERSION = 3
 """Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
 parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
-# The built-in exploration noise's defaults: a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG
-DEFAULT_NOISE: dict[str, float] = dict(noise_std=0.1, noise_decay=1.0, noise_std_min=0.0)
+# SOUP's arguments of its policy, passed by SOUP besides policy_kwargs (see SOUP._policy_arguments)
+_POLICY_ARGUMENTS = ("n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs")
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
 # Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
@@ -52,34 +66,78 @@ _STRUCTURAL_ARGUMENTS = (
     "n_critic_heads",
     "preset",
     "confidence",
-    "alpha",
-    "decay",
-    "temperature",
-    "temperature_mode",
-    "confidence_lr",
-    "confidence_baseline",
-    "ucb_lambda",
+    "confidence_kwargs",
     "policy",
 )
+TRAIN_HEADS = ("active", "all", "all_critics")
+TARGET_Q = ("own", "min_pair")
 
 
-def check_noise(action_noise: ActionNoise | None, noise_args: dict[str, float]) -> None:
-    """
-    One rule for the exploration noise: an ``action_noise`` replaces the built-in Gaussian noise (``noise_std``,
-    ``noise_decay``, ``noise_std_min``), as a TD3 or DDPG script expects; a warning when both were set.
+def _learning_rate(name: str, value: Any) -> Any:
+    if callable(value) or (is_number(value) and math.isfinite(value) and value > 0):
+        return value
+    raise ValueError(
+        f"{name} must be a float > 0 or a schedule (a function of the progress remaining, from 1 to 0), {given(value)}"
+    )
 
-    :param action_noise: SOUP's ``action_noise``
-    :param noise_args: the built-in noise's arguments as given
-    """
-    changed = {name: value for name, value in noise_args.items() if value != DEFAULT_NOISE[name]}
-    if action_noise is not None and changed:
-        settings = ", ".join(f"{name}={value!r}" for name, value in changed.items())
-        warnings.warn(
-            f"action_noise={action_noise} replaces SOUP's built-in Gaussian noise: {settings} are unused. Pass one of them: "
-            "action_noise (SB3's noise, added to the E-action as TD3 adds it) or noise_std/noise_decay/noise_std_min",
-            UserWarning,
-            stacklevel=3,
+
+def _seed(name: str, value: Any) -> int | None:
+    if value is None:
+        return None
+    if not is_int(value) or not 0 <= value < 2**32:
+        raise ValueError(f"{name} must be None or an integer in [0, 2**32 - 1] (NumPy's seed range), {given(value)}")
+    return int(value)
+
+
+def _integer(meaning: str) -> Rule:
+    def rule(name: str, value: Any) -> int:
+        if not is_int(value):
+            raise ValueError(f"{name} must be an integer ({meaning}), {given(value)}")
+        return int(value)
+
+    return rule
+
+
+def _action_noise(name: str, value: Any) -> Any:
+    if value is not None and not isinstance(value, ActionNoise):
+        raise ValueError(
+            f"{name} must be None (SOUP's N(0, 0.1), see sb3_soup.noise.default_action_noise) or an instance of "
+            f"stable_baselines3.common.noise.ActionNoise (e.g. sb3_soup.DecayingNormalActionNoise), {given(value)}"
         )
+    return value
+
+
+ARGUMENT_RULES: dict[str, Rule] = {
+    # SOUP's own arguments (n_heads, the head counts, preset and mask_prob: sb3_soup.presets.resolve_model; confidence
+    # and confidence_kwargs: the policy and the strategy, which take them)
+    "critic_learning_rate": optional(_learning_rate, "the same as learning_rate"),
+    "train_heads": choice(TRAIN_HEADS, "which head pairs each gradient step trains"),
+    "target_q": choice(TARGET_Q, "which target critic heads each head bootstraps from"),
+    "policy_delay": integer(1, "critic updates per actor and target update"),
+    "target_policy_noise": number(0.0, math.inf, False, True, "std of the target action's smoothing noise, 0: none"),
+    "target_noise_clip": number(0.0, math.inf, False, True, "limit of the target action's smoothing noise"),
+    "check_finite": boolean("raise at the first NaN/inf observation, reward, Q value or loss"),
+    "replay_buffer_kwargs": keyword_dict(
+        {"n_masks", "mask_prob"}, "replay buffer", "SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
+    ),
+    "policy_kwargs": keyword_dict(
+        set(_POLICY_ARGUMENTS), "policy", "set them as SOUP arguments (n_heads, preset, confidence, confidence_kwargs...)"
+    ),
+    # SB3's arguments are SB3's to check, but for those SB3 would fail on without naming them
+    "buffer_size": _integer("replay buffer size"),
+    "n_steps": _integer("steps of the n-step returns, 1 or less: one-step TD targets"),
+    "seed": _seed,
+    "action_noise": _action_noise,
+}
+"""SOUP's rules for its arguments (``SOUP.__init__`` and ``SOUP.load`` check them with :func:`check_arguments`)."""
+
+
+def check_arguments(**kwargs: Any) -> dict[str, Any]:
+    """
+    :param kwargs: SOUP's arguments (those without a rule in :data:`ARGUMENT_RULES` pass through unchecked)
+    :return: the arguments, each checked by its rule (numbers as Python ``int``/``float``/``bool``)
+    """
+    return {name: (ARGUMENT_RULES[name](name, value) if name in ARGUMENT_RULES else value) for name, value in kwargs.items()}
 
 
 def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
@@ -121,9 +179,10 @@ class SOUP(OffPolicyAlgorithm):
     :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
         like ``(5, "step")`` or ``(2, "episode")``.
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
-    :param action_noise: an SB3 ``ActionNoise``, added to the E-action in the [-1, 1] scaled action space as SB3's TD3
-        and DDPG add it; when given it replaces the built-in Gaussian noise (``noise_std``, ``noise_decay`` and
-        ``noise_std_min`` are then unused, with a warning if they were set)
+    :param action_noise: the exploration noise, an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] scaled
+        action space as SB3's TD3 and DDPG add it (none during the random warm-up); None (SOUP's rule, unlike TD3's):
+        a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG (:func:`sb3_soup.noise.default_action_noise`). A decaying
+        std (the paper mode's): :class:`sb3_soup.DecayingNormalActionNoise`
     :param replay_buffer_class: Replay buffer class to use: one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
         ``HerReplayBuffer`` (for instance), ``NStepReplayBuffer``, for which SOUP builds their bootstrapped versions
         (see :mod:`sb3_soup.buffers`: they store the masks), or a subclass of those. If ``None``, it will be
@@ -142,16 +201,11 @@ class SOUP(OffPolicyAlgorithm):
         (sets head counts and confidence; see :data:`sb3_soup.PRESETS`)
     :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive"
         (default, or the preset's), "ucb" (optimistic selection) or a :class:`sb3_soup.ConfidenceStrategy` instance
-    :param alpha: fixed confidence of a critic head in its own candidate (``confidence="fixed"``), in (0, 1)
-    :param decay: per-step decay of the confidence (``confidence="decayed"``), in (0, 1]
-    :param temperature: softmax temperature of the selection policy trained by REINFORCE (``"adaptive"``), > 0
-    :param temperature_mode: "absolute": ``softmax(v / temperature)`` (the paper's form, whose sharpness depends on the
-        scale of Q); "relative": the E-Q values in units of their spread across the state's candidates, whatever the
-        scale of Q (not the default: it did not learn better in docs/results.md's measurements)
-    :param confidence_lr: learning rate of the confidence network (``"adaptive"``)
-    :param confidence_baseline: subtract a running-mean reward baseline in REINFORCE (False: the paper's raw reward)
-    :param ucb_lambda: weight of the disagreement bonus of the optimistic selection (``confidence="ucb"``): while
-        exploring, candidates are rated ``mean + ucb_lambda * std`` over the critic heads (SUNRISE)
+    :param confidence_kwargs: the arguments of the strategy that ``confidence`` names, by the class's own names (None:
+        its defaults): ``alpha`` for "fixed" (:class:`sb3_soup.FixedConfidence`), ``decay`` for "decayed"
+        (:class:`sb3_soup.DecayedConfidence`), ``ucb_lambda`` for "ucb" (:class:`sb3_soup.UCBConfidence`), ``lr``,
+        ``temperature``, ``temperature_mode``, ``baseline``... for "adaptive" (:class:`sb3_soup.AdaptiveConfidence`);
+        none with a strategy instance, which has its own
     :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off
         (default 0.5, 1.0 for the "ddpg" preset)
     :param train_heads: "active": train the episode's active head pair (the paper); "all": every head pair
@@ -165,10 +219,6 @@ class SOUP(OffPolicyAlgorithm):
     :param target_policy_noise: std of the Gaussian noise added to the target actions (TD3's target policy smoothing;
         the paper: 0, none), in the [-1, 1] scaled action space
     :param target_noise_clip: limit of the absolute value of that noise
-    :param noise_std: initial std of the built-in Gaussian exploration noise (in the [-1, 1] scaled action space;
-        default 0.1 constant, the RL Zoo's N(0, 0.1) for TD3 and DDPG); unused when ``action_noise`` is given
-    :param noise_decay: multiplicative decay of the noise std per environment step, in (0, 1] (1: constant)
-    :param noise_std_min: the noise std never goes below this
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
@@ -218,22 +268,13 @@ class SOUP(OffPolicyAlgorithm):
         n_critic_heads: int | None = None,
         preset: str | None = None,
         confidence: str | ConfidenceStrategy | None = None,
-        alpha: float = 0.5,
-        decay: float = 0.9995,
-        temperature: float = 1.0,
-        temperature_mode: str = "absolute",
-        confidence_lr: float = 1e-4,
-        confidence_baseline: bool = True,
-        ucb_lambda: float = 1.0,
+        confidence_kwargs: dict[str, Any] | None = None,
         mask_prob: float | None = None,
         train_heads: str = "active",
         target_q: str = "own",
         policy_delay: int = 1,
         target_policy_noise: float = 0.0,
         target_noise_clip: float = 0.5,
-        noise_std: float = DEFAULT_NOISE["noise_std"],
-        noise_decay: float = DEFAULT_NOISE["noise_decay"],
-        noise_std_min: float = DEFAULT_NOISE["noise_std_min"],
         check_finite: bool = True,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
@@ -244,91 +285,47 @@ class SOUP(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ):
         model = resolve_model(n_heads, n_actor_heads, n_critic_heads, preset, confidence, mask_prob)
-        args = check_arguments(
-            learning_rate=learning_rate,
-            critic_learning_rate=critic_learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            train_freq=train_freq,
-            gradient_steps=gradient_steps,
-            action_noise=action_noise,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            alpha=alpha,
-            decay=decay,
-            temperature=temperature,
-            temperature_mode=temperature_mode,
-            confidence_lr=confidence_lr,
-            confidence_baseline=confidence_baseline,
-            ucb_lambda=ucb_lambda,
-            train_heads=train_heads,
-            target_q=target_q,
-            policy_delay=policy_delay,
-            target_policy_noise=target_policy_noise,
-            target_noise_clip=target_noise_clip,
-            noise_std=noise_std,
-            noise_decay=noise_decay,
-            noise_std_min=noise_std_min,
-            check_finite=check_finite,
-            stats_window_size=stats_window_size,
-            policy_kwargs=policy_kwargs,
-            seed=seed,
-        )
-        check_noise(action_noise, {name: args[name] for name in DEFAULT_NOISE})
+        args = check_arguments(**{name: value for name, value in locals().items() if name in ARGUMENT_RULES})
         super().__init__(
             policy,
             env,
             learning_rate,
             args["buffer_size"],
-            args["learning_starts"],
-            args["batch_size"],
-            args["tau"],
-            args["gamma"],
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
             train_freq,
-            args["gradient_steps"],
-            action_noise=action_noise,
+            gradient_steps,
+            action_noise=args["action_noise"],  # None: SOUP's default, built by _setup_model
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),  # a copy: the masks' arguments are added to it
-            optimize_memory_usage=args["optimize_memory_usage"],
-            n_steps=args["n_steps"],
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
             policy_kwargs=dict(policy_kwargs or {}),
-            stats_window_size=args["stats_window_size"],
+            stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
             device=device,
-            seed=seed,
+            seed=args["seed"],
             sde_support=False,
             supported_action_spaces=(spaces.Box,),
             support_multi_env=True,
         )
-        self.critic_learning_rate = critic_learning_rate
+        self.critic_learning_rate = args["critic_learning_rate"]
         self.n_heads: int = model["n_heads"]
-        self.preset_name: str | None = model["preset"]
+        self.preset: str | None = model["preset"]  # the key of sb3_soup.PRESETS (or None)
         self.n_actor_heads: int = model["n_actor_heads"]
         self.n_critic_heads: int = model["n_critic_heads"]
         self.confidence = model["confidence"]
+        self.confidence_kwargs = confidence_kwargs  # the strategy's own arguments, checked by the strategy
         self.mask_prob: float = model["mask_prob"]
-        self.alpha: float = args["alpha"]
-        self.decay: float = args["decay"]
-        self.temperature: float = args["temperature"]
-        self.temperature_mode: str = args["temperature_mode"]
-        self.confidence_lr: float = args["confidence_lr"]
-        self.confidence_baseline: bool = args["confidence_baseline"]
-        self.ucb_lambda: float = args["ucb_lambda"]
         self.train_heads: str = args["train_heads"]
         self.target_q: str = args["target_q"]
         self.policy_delay: int = args["policy_delay"]
         self.target_policy_noise: float = args["target_policy_noise"]
         self.target_noise_clip: float = args["target_noise_clip"]
-        self.noise_std: float = args["noise_std"]
-        self.noise_decay: float = args["noise_decay"]
-        self.noise_std_min: float = args["noise_std_min"]
         self.check_finite: bool = args["check_finite"]
-        self.current_noise_std = self.noise_std
         # Saved with the model: which sb3-soup wrote it, in which save format (checked by SOUP.load)
         self._sb3_soup_format = SAVE_FORMAT_VERSION
         self._sb3_soup_version = __version__
@@ -343,26 +340,6 @@ class SOUP(OffPolicyAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
-    @classmethod
-    def preset_names(cls) -> list[str]:
-        """Names accepted by :meth:`preset` and the ``preset`` argument."""
-        from sb3_soup.presets import PRESETS
-
-        return sorted(PRESETS)
-
-    @classmethod
-    def preset(cls: type[SelfSOUP], name: str, policy: str | type[SOUPPolicy], env: GymEnv | str, **kwargs: Any) -> SelfSOUP:
-        """
-        One of the paper's models (Figure 1): ``SOUP.preset("dbddpg", "MlpPolicy", env, n_heads=5)``
-        is ``SOUP("MlpPolicy", env, n_heads=5, preset="dbddpg")``.
-
-        :param name: "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg" or "soup"
-        :param policy: the policy (see :class:`SOUP`)
-        :param env: the environment (see :class:`SOUP`)
-        :param kwargs: any other argument of :class:`SOUP`
-        """
-        return cls(policy, env, preset=name, **kwargs)
-
     def _get_policy_from_name(self, policy_name: str) -> type[BasePolicy]:
         if policy_name not in self.policy_aliases:
             raise ValueError(
@@ -376,15 +353,7 @@ class SOUP(OffPolicyAlgorithm):
             n_actor_heads=self.n_actor_heads,
             n_critic_heads=self.n_critic_heads,
             confidence=self.confidence,
-            confidence_kwargs=dict(
-                alpha=self.alpha,
-                decay=self.decay,
-                lr=self.confidence_lr,
-                temperature=self.temperature,
-                temperature_mode=self.temperature_mode,
-                baseline=self.confidence_baseline,
-                ucb_lambda=self.ucb_lambda,
-            ),
+            confidence_kwargs=self.confidence_kwargs,
         )
 
     def _setup_model(self) -> None:
@@ -414,7 +383,9 @@ class SOUP(OffPolicyAlgorithm):
         # None: the critic follows learning_rate (self.lr_schedule, read at each training round, as SB3 reads it)
         self.critic_lr_schedule = None if self.critic_learning_rate is None else _as_schedule(self.critic_learning_rate)
         update_learning_rate(self.critic.optimizer, self._critic_lr_schedule()(1))
-        self._update_noise_std()
+        if self.action_noise is None:  # SOUP's rule: N(0, 0.1) (a loaded model has the noise it was saved with)
+            assert self.action_space.shape is not None
+            self.action_noise = default_action_noise(self.action_space.shape)
 
     def _critic_lr_schedule(self) -> Schedule:
         """The critic's learning rate schedule: ``critic_learning_rate``'s, or ``learning_rate``'s when it is None."""
@@ -428,15 +399,6 @@ class SOUP(OffPolicyAlgorithm):
 
     # ----- acting (Algorithm 1) ---------------------------------------------------------------------------------
 
-    def _update_noise_std(self) -> None:
-        """
-        Gaussian noise std after ``num_timesteps`` env-steps: ``max(noise_std_min, noise_std * noise_decay ** t)``; 0
-        when an ``action_noise`` replaces the built-in noise (then ``predict(deterministic=False)`` adds none, as TD3's).
-        """
-        builtin = max(self.noise_std_min, self.noise_std * self.noise_decay**self.num_timesteps)
-        self.current_noise_std = builtin if self.action_noise is None else 0.0
-        self.policy.current_noise_std = self.current_noise_std
-
     def _draw_active_pairs(self, envs: np.ndarray) -> None:
         """Algorithm 1: every episode starts with a randomly selected head pair (one per env)."""
         assert self._active_pairs is not None
@@ -445,9 +407,10 @@ class SOUP(OffPolicyAlgorithm):
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
-        """E-action of the ensemble for every env (eq. 7), plus exploration noise; random actions during warm-up."""
+        """E-action of the ensemble for every env (eq. 7), plus exploration noise; random actions (without noise) during
+        the warm-up."""
         if self.num_timesteps < learning_starts:
-            return super()._sample_action(learning_starts, action_noise, n_envs)
+            return super()._sample_action(learning_starts, None, n_envs)
         assert self._last_obs is not None, "self._last_obs was not set"
         obs_tensor, _ = self.policy.obs_to_tensor(self._last_obs)
         with th.no_grad():
@@ -461,10 +424,7 @@ class SOUP(OffPolicyAlgorithm):
         # (n_envs, *action_shape) in [-1, 1], as SB3's predict shapes actions (the buffer stores them flat)
         scaled_action = selection.actions.cpu().numpy().reshape((-1, *action_shape))
         if action_noise is not None:
-            noise = action_noise()
-        else:
-            noise = np.random.normal(0.0, self.current_noise_std, size=scaled_action.shape)
-        scaled_action = np.clip(scaled_action + noise, -1.0, 1.0)
+            scaled_action = np.clip(scaled_action + action_noise(), -1.0, 1.0)
         return self.policy.unscale_action(scaled_action), scaled_action
 
     def _store_transition(
@@ -490,9 +450,6 @@ class SOUP(OffPolicyAlgorithm):
         )
         self._last_selection = None
         self._draw_active_pairs(np.flatnonzero(dones))
-
-    def _on_step(self) -> None:
-        self._update_noise_std()
 
     # ----- training -------------------------------------------------------------------------------------------
 
@@ -552,7 +509,9 @@ class SOUP(OffPolicyAlgorithm):
 
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/critic_learning_rate", critic_lr)
-        self.logger.record("train/noise_std", self.current_noise_std)
+        exploration_std = noise_std(self.action_noise)  # a DecayingNormalActionNoise's (SOUP's default is one)
+        if exploration_std is not None:
+            self.logger.record("train/noise_std", exploration_std)
         if critic_losses:
             self.logger.record("train/critic_loss", np.mean(critic_losses))
         if actor_losses:
@@ -632,7 +591,6 @@ class SOUP(OffPolicyAlgorithm):
             self._active_pairs = np.zeros(self.n_envs, dtype=np.int64)
             self._draw_active_pairs(np.arange(self.n_envs))  # new episodes
             self._last_selection = None
-        self._update_noise_std()
         return result
 
     def learn(

@@ -4,7 +4,9 @@ SOUP in the RL Zoo (rl_zoo3), which has no plugin mechanism: register into its d
 ``register()`` adds ``"soup"`` to ``rl_zoo3.utils.ALGOS``, the optuna sampler and converter to
 ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER``/``HYPERPARAMS_CONVERTER`` (``-optimize``), and makes
 ``ExperimentManager`` read ``hyperparams/soup.yml`` (installed as ``sb3_soup.hyperparams``) when ``--algo soup``
-comes without ``--conf-file``.
+comes without ``--conf-file``, and build a :class:`sb3_soup.DecayingNormalActionNoise` for the entries whose
+``noise_type`` is ``'decaying_normal'`` (with ``noise_std``, ``noise_decay``, ``noise_std_min``: the paper mode's noise,
+``hyperparams/soup_paper.yml``).
 Every step is idempotent. The import hook installed by ``sb3_soup_zoo.pth`` (``_sb3_soup_zoo_hook``) calls
 ``on_import`` on each of those rl_zoo3 modules right after it executes, so ``python -m rl_zoo3.train --algo soup``
 works with no user action; ``python -m sb3_soup.train`` calls ``register()`` itself.
@@ -22,6 +24,7 @@ ALGO_NAME = "soup"
 DEFAULT_CONF_FILE = hyperparams_file("soup")
 
 _WRAPPED_MARK = "_sb3_soup_default_conf"
+_NOISE_MARK = "_sb3_soup_decaying_noise"
 
 
 def register_algo(utils: ModuleType) -> None:
@@ -78,10 +81,45 @@ def use_default_conf_file(exp_manager: ModuleType) -> None:
     manager_class.__init__ = __init__
 
 
+def use_decaying_noise(exp_manager: ModuleType) -> None:
+    """
+    Make ``ExperimentManager`` build a :class:`sb3_soup.DecayingNormalActionNoise` for ``noise_type: 'decaying_normal'``
+    (``noise_std``, ``noise_decay``, ``noise_std_min``; see :func:`sb3_soup.noise.zoo_action_noise`); the Zoo's own
+    noise types are left to it.
+
+    :param exp_manager: the ``rl_zoo3.exp_manager`` module
+    """
+    from sb3_soup.noise import DECAYING_NORMAL, zoo_action_noise
+
+    manager_class = exp_manager.ExperimentManager
+    original = manager_class._preprocess_action_noise
+    if getattr(original, _NOISE_MARK, False):
+        return
+
+    @functools.wraps(original)
+    def _preprocess_action_noise(self: Any, hyperparams: dict[str, Any], saved_hyperparams: dict[str, Any], env: Any) -> Any:
+        if str(hyperparams.get("noise_type") or "").strip() == DECAYING_NORMAL:
+            decay, floor = hyperparams.get("noise_decay", 1.0), hyperparams.get("noise_std_min", 0.0)
+            print(f"Applying {DECAYING_NORMAL} noise with std {hyperparams['noise_std']}, decay {decay} and floor {floor}")
+            hyperparams = zoo_action_noise(hyperparams, env.action_space.shape)
+        return original(self, hyperparams, saved_hyperparams, env)
+
+    setattr(_preprocess_action_noise, _NOISE_MARK, True)
+    manager_class._preprocess_action_noise = _preprocess_action_noise
+
+
+def register_experiment_manager(exp_manager: ModuleType) -> None:
+    """
+    :param exp_manager: the ``rl_zoo3.exp_manager`` module (see :func:`use_default_conf_file`, :func:`use_decaying_noise`)
+    """
+    use_default_conf_file(exp_manager)
+    use_decaying_noise(exp_manager)
+
+
 _REGISTRATIONS = {
     "rl_zoo3.utils": register_algo,
     "rl_zoo3.hyperparams_opt": register_optimizer,
-    "rl_zoo3.exp_manager": use_default_conf_file,
+    "rl_zoo3.exp_manager": register_experiment_manager,
 }
 
 #: the rl_zoo3 modules the import hook watches

@@ -7,6 +7,8 @@ rebuild exactly what a trial trained.
 
 from typing import Any
 
+from sb3_soup.noise import DECAYING_NORMAL, zoo_action_noise
+
 # Bodies and heads of actor (pi) and critic (qf); "paper" is SOUP's default (Section 5 of the paper).
 NET_ARCHS: dict[str, dict[str, list[int]]] = {
     "small": dict(pi_body=[64], pi_head=[64], qf_body=[64, 64], qf_head=[64]),
@@ -23,7 +25,9 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     """
     Turn sampled values into SOUP's arguments: ``one_minus_gamma`` -> ``gamma``, ``batch_size_pow`` ->
     ``batch_size``, ``net_arch`` name -> ``policy_kwargs``, ``train_freq`` -> also ``gradient_steps`` (one gradient
-    step per env-step, as in the Zoo's TD3 sampler).
+    step per env-step, as in the Zoo's TD3 sampler), ``confidence_lr`` -> ``confidence_kwargs=dict(lr=...)`` (the
+    adaptive confidence's learning rate), ``noise_std`` -> also ``noise_type="decaying_normal"`` (the RL Zoo's noise
+    keys: the Zoo builds a constant :class:`sb3_soup.DecayingNormalActionNoise` from them, as SOUP's default is).
 
     :param sampled_params: the values of one trial (``trial.params``)
     :return: keyword arguments for ``SOUP``
@@ -37,6 +41,10 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         hyperparams["gradient_steps"] = hyperparams["train_freq"]
     if "net_arch" in hyperparams:
         hyperparams["policy_kwargs"] = dict(net_arch=NET_ARCHS[hyperparams.pop("net_arch")])
+    if "confidence_lr" in hyperparams:
+        hyperparams["confidence_kwargs"] = dict(lr=hyperparams.pop("confidence_lr"))
+    if "noise_std" in hyperparams:  # the Zoo's keys (as --trial-id passes them on): a constant decaying_normal noise
+        hyperparams["noise_type"] = DECAYING_NORMAL
     return hyperparams
 
 
@@ -47,7 +55,7 @@ def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args:
     targets, confidence strategy and the adaptive confidence network's learning rate, exploration noise).
 
     :param trial: the optuna trial
-    :param n_actions: size of the action space (unused: SOUP's noise is scaled to [-1, 1] actions)
+    :param n_actions: size of the action space (of the exploration noise)
     :param n_envs: number of environments (unused)
     :param additional_args: the Zoo's extra arguments (HER settings; unused, SOUP's buffer is its own)
     :return: keyword arguments for ``SOUP``
@@ -72,4 +80,5 @@ def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args:
         params["confidence_lr"] = trial.suggest_float("confidence_lr", 1e-5, 1e-3, log=True)
     trial.set_user_attr("gamma", 1 - params["one_minus_gamma"])
     trial.set_user_attr("batch_size", 2 ** params["batch_size_pow"])
-    return convert_soup_params(params)
+    # the Zoo passes the sampled values to the model as they are: the noise as the object its keys stand for
+    return zoo_action_noise(convert_soup_params(params), (n_actions,))

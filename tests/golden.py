@@ -37,7 +37,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_soup import SOUP
+from sb3_soup import SOUP, DecayingNormalActionNoise
 
 GOLDEN_FILE = Path(__file__).parent / "data" / "golden.json"
 STEPS = 300
@@ -54,29 +54,28 @@ SETTINGS: dict[str, Any] = dict(
     train_freq=1,
     gradient_steps=1,
     mask_prob=0.5,
-    noise_std=0.2,
-    noise_decay=0.999995,
-    noise_std_min=0.05,
-    alpha=0.5,
-    decay=0.9995,
-    temperature=1.0,
-    temperature_mode="absolute",
-    confidence_lr=1e-4,
     target_q="own",
     policy_delay=1,
     target_policy_noise=0.0,
-    confidence_baseline=True,
     policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
 )
 WARMUP = SETTINGS["learning_starts"]  # the first steps act at random: no network is involved
+# The paper mode's noise, std 0.2 decayed by 0.999995 per step down to 0.05, as the runs were recorded (before issue 20):
+# its schedule then counted the warm-up's steps too, so the first noisy step's std was 0.2 * 0.999995 ** WARMUP. A
+# DecayingNormalActionNoise counts its draws, none during the warm-up: it starts from there and draws the same numbers.
+NOISE = dict(sigma=0.2 * 0.999995**WARMUP, decay=0.999995, sigma_min=0.05)
+# Every argument of each strategy (the no-confidence presets have none)
+ADAPTIVE = dict(lr=1e-4, temperature=1.0, temperature_mode="absolute", baseline=True)
 CASES: dict[str, dict[str, Any]] = {
     **{
-        f"{preset}-{scheme}": dict(preset=preset, train_heads=scheme)
+        f"{preset}-{scheme}": dict(
+            preset=preset, train_heads=scheme, **({"confidence_kwargs": ADAPTIVE} if preset == "soup" else {})
+        )
         for preset in ("ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup")
         for scheme in ("active", "all")
     },
-    "fixed-active": dict(confidence="fixed", train_heads="active"),
-    "decayed-active": dict(confidence="decayed", train_heads="active"),
+    "fixed-active": dict(confidence="fixed", confidence_kwargs=dict(alpha=0.5), train_heads="active"),
+    "decayed-active": dict(confidence="decayed", confidence_kwargs=dict(decay=0.9995), train_heads="active"),
 }
 ACTION_BOUND = 2.0  # Pendulum-v1's largest torque: the scale of its actions
 
@@ -136,7 +135,8 @@ def run_case(name: str, steps: int = STEPS, threads: int = 1) -> dict[str, Any]:
         (for each part of :func:`_parts`, ``sum |theta - theta_0|`` over the run)
     """
     th.set_num_threads(threads)
-    model = SOUP("MlpPolicy", "Pendulum-v1", seed=0, device="cpu", **SETTINGS, **CASES[name])
+    noise = DecayingNormalActionNoise(np.zeros(1), np.full(1, NOISE["sigma"]), NOISE["decay"], NOISE["sigma_min"])
+    model = SOUP("MlpPolicy", "Pendulum-v1", seed=0, device="cpu", action_noise=noise, **SETTINGS, **CASES[name])
     initial = _parts(model)
     updates: dict[str, list[float]] = defaultdict(list)
     train = model.train

@@ -6,10 +6,11 @@ Pendulum-v1 with SB3's CheckpointCallback (prefix "sb3") and sb3-soup's Resumabl
 
 import sys
 
+import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import CheckpointCallback
 
-from sb3_soup import SOUP
+from sb3_soup import SOUP, DecayingNormalActionNoise
 from sb3_soup.checkpoint import ResumableCheckpointCallback
 
 TINY = dict(net_arch=dict(pi_body=[16], pi_head=[16], qf_body=[16, 16], qf_head=[16]))
@@ -18,18 +19,17 @@ KWARGS = dict(
     learning_starts=40,
     batch_size=16,
     buffer_size=2000,
-    noise_std=0.5,
-    noise_decay=0.995,
-    noise_std_min=0.05,
     policy_kwargs=TINY,
     seed=11,
 )
+NOISE = dict(decay=0.995, sigma_min=0.05)
 SAVE_FREQ = 60
 
 
 def make_model() -> SOUP:
     """The run's model (adaptive confidence: a REINFORCE network, its Adam state and a reward baseline)."""
-    return SOUP("MlpPolicy", "Pendulum-v1", **KWARGS)
+    noise = DecayingNormalActionNoise(np.zeros(1), np.full(1, 0.5), **NOISE)  # a decaying noise: its schedule must resume
+    return SOUP("MlpPolicy", "Pendulum-v1", action_noise=noise, **KWARGS)
 
 
 if __name__ == "__main__":

@@ -105,20 +105,28 @@ INVALID = [
     (dict(mask_prob=0.0), "mask_prob", re.escape("a float in (0, 1]")),
     (dict(mask_prob="0.5"), "mask_prob", re.escape("a float in (0, 1]")),
     (dict(mask_prob=True), "mask_prob", re.escape("a float in (0, 1]")),
-    (dict(alpha=1.0), "alpha", re.escape("a float in (0, 1)")),
-    (dict(alpha="0.5"), "alpha", re.escape("a float in (0, 1)")),
-    (dict(decay=0.0), "decay", re.escape("a float in (0, 1]")),
-    (dict(decay=float("nan")), "decay", re.escape("a float in (0, 1]")),
-    (dict(temperature=0), "temperature", re.escape("a float in (0, inf)")),
-    (dict(confidence_lr=-1.0), "confidence_lr", re.escape("a float in (0, inf)")),
-    (dict(confidence_baseline="yes"), "confidence_baseline", "True or False"),
-    (dict(noise_std=-0.1), "noise_std", re.escape("a float in [0, inf)")),
-    (dict(noise_decay=1.5), "noise_decay", re.escape("a float in (0, 1]")),
-    (dict(noise_std_min="0"), "noise_std_min", re.escape("a float in [0, inf)")),
+    (dict(confidence="fixed", confidence_kwargs=dict(alpha=1.0)), "alpha", re.escape("a float in (0, 1)")),
+    (dict(confidence="fixed", confidence_kwargs=dict(alpha="0.5")), "alpha", re.escape("a float in (0, 1)")),
+    (dict(confidence="decayed", confidence_kwargs=dict(decay=0.0)), "decay", re.escape("a float in (0, 1]")),
+    (dict(confidence="decayed", confidence_kwargs=dict(decay=float("nan"))), "decay", re.escape("a float in (0, 1]")),
+    (dict(confidence_kwargs=dict(temperature=0)), "temperature", re.escape("a float in (0, inf)")),
+    (dict(confidence_kwargs=dict(lr=-1.0)), "lr", re.escape("a float in (0, inf)")),
+    (dict(confidence_kwargs=dict(baseline="yes")), "baseline", "True or False"),
+    (
+        dict(confidence_kwargs=dict(alpha=0.5)),
+        "confidence_kwargs",
+        re.escape("for confidence='adaptive': AdaptiveConfidence accepts ['baseline'"),
+    ),
+    (dict(preset="dbddpg", confidence_kwargs=dict(lr=1e-3)), "confidence_kwargs", re.escape("NoConfidence accepts []")),
+    (dict(confidence_kwargs=[0.5]), "confidence_kwargs", re.escape("None or a dict of the strategy's arguments")),
     (dict(check_finite=1), "check_finite", "True or False"),
     (dict(confidence="sometimes"), "confidence", re.escape("one of ('none', 'fixed', 'decayed', 'adaptive', 'ucb')")),
-    (dict(ucb_lambda=-1.0), "ucb_lambda", re.escape("a float in [0, inf)")),
-    (dict(temperature_mode="scaled"), "temperature_mode", re.escape("one of ('absolute', 'relative')")),
+    (dict(confidence="ucb", confidence_kwargs=dict(ucb_lambda=-1.0)), "ucb_lambda", re.escape("a float in [0, inf)")),
+    (
+        dict(confidence_kwargs=dict(temperature_mode="scaled")),
+        "temperature_mode",
+        re.escape("one of ('absolute', 'relative')"),
+    ),
     (dict(confidence=42), "confidence", "ConfidenceStrategy subclass"),
     (dict(preset="td3"), "preset", re.escape("one of ['dbddpg', 'ddpg', 'ma_bddpg', 'multi_ddpg', 'soup']")),
     (dict(preset=3), "preset", re.escape("one of ['dbddpg', 'ddpg', 'ma_bddpg', 'multi_ddpg', 'soup']")),
@@ -129,20 +137,11 @@ INVALID = [
     (dict(policy_delay=0), "policy_delay", "integer >= 1"),
     (dict(target_policy_noise=-0.1), "target_policy_noise", re.escape("a float in [0, inf)")),
     (dict(target_noise_clip=float("nan")), "target_noise_clip", re.escape("a float in [0, inf)")),
-    (dict(tau=0.0), "tau", re.escape("a float in (0, 1]")),
-    (dict(gamma=1.5), "gamma", re.escape("a float in [0, 1]")),
-    (dict(batch_size=0), "batch_size", "an integer >= 1"),
-    (dict(buffer_size=1.5e6), "buffer_size", "an integer >= 1"),
-    (dict(learning_starts=-1), "learning_starts", "an integer >= 0"),
-    (dict(gradient_steps=-2), "gradient_steps", "an integer >= -1"),
-    (dict(train_freq=0), "train_freq", re.escape("an integer >= 1 (train every n steps) or a tuple (n, 'step' | 'episode')")),
-    (dict(train_freq=(1, "epoch")), re.escape("train_freq[1]"), re.escape("one of ('step', 'episode')")),
-    (dict(learning_rate="1e-3"), "learning_rate", "a float > 0 or a schedule"),
+    (dict(buffer_size=1.5e6), "buffer_size", re.escape("an integer (replay buffer size)")),
     (dict(critic_learning_rate=0.0), "critic_learning_rate", "a float > 0 or a schedule"),
     (dict(action_noise=0.1), "action_noise", "None .* or an instance of stable_baselines3.common.noise.ActionNoise"),
     (dict(seed=-1), "seed", re.escape("None or an integer in [0, 2**32 - 1]")),
     (dict(seed="0"), "seed", re.escape("None or an integer in [0, 2**32 - 1]")),
-    (dict(stats_window_size=0), "stats_window_size", "an integer >= 1"),
     (dict(replay_buffer_kwargs=dict(mask_prob=0.3)), "replay_buffer_kwargs", "pass mask_prob to SOUP"),
     (dict(replay_buffer_class=dict), "replay_buffer_class", "subclass of sb3_soup.BootstrappedReplayBuffer"),
     (dict(policy_kwargs=dict(net_arch="big")), "net_arch", "a list of layer sizes .* dict with keys .*'pi_body', 'pi_head'"),
@@ -171,8 +170,43 @@ def test_every_invalid_argument_names_the_parameter_and_the_accepted_values(kwar
     message = str(error.value)
     assert re.search(parameter, message) and re.search(accepted, message), message
     given = next(iter(kwargs.values()))
-    if not isinstance(given, (dict, tuple)):  # and what was given
+    if "confidence_kwargs" in kwargs:  # a strategy's argument
+        given = kwargs["confidence_kwargs"]
+        given = next(iter(given.values())) if isinstance(given, dict) else given
+    if not isinstance(given, (dict, tuple)) and "unknown keys" not in message:  # and what was given
         assert repr(given) in message or str(given) in message, message
+
+
+# SB3's own arguments are SB3's to check: what SB3's TD3 accepts, SOUP accepts
+SB3_ACCEPTS = [
+    dict(tau=0.0),
+    dict(gamma=1.5),
+    dict(batch_size=0),
+    dict(learning_starts=-1),
+    dict(gradient_steps=-2),
+    dict(stats_window_size=0),
+    dict(n_steps=0),
+]
+
+
+@pytest.mark.parametrize("kwargs", SB3_ACCEPTS, ids=str)
+def test_what_sb3_accepts_of_its_own_arguments_soup_accepts(kwargs):
+    TD3("MlpPolicy", "Pendulum-v1", buffer_size=100, **kwargs)
+    SOUP("MlpPolicy", "Pendulum-v1", buffer_size=100, **kwargs)
+
+
+# and what it refuses, SOUP refuses with SB3's error
+SB3_REFUSES = [
+    (dict(train_freq=(1, "epoch")), ValueError, "The unit of the `train_freq` must be either 'step' or 'episode' not 'epoch'"),
+    (dict(learning_rate="1e-3"), AssertionError, "The learning rate schedule must be a float or a callable, not 1e-3"),
+]
+
+
+@pytest.mark.parametrize("kwargs, error, message", SB3_REFUSES, ids=[str(case[0]) for case in SB3_REFUSES])
+def test_what_sb3_refuses_of_its_own_arguments_gets_sb3s_error(kwargs, error, message):
+    for algo in (TD3, SOUP):
+        with pytest.raises(error, match=re.escape(message)):
+            algo("MlpPolicy", "Pendulum-v1", buffer_size=100, **kwargs)
 
 
 def test_numpy_scalars_are_accepted_and_stored_as_python_numbers():
@@ -180,17 +214,17 @@ def test_numpy_scalars_are_accepted_and_stored_as_python_numbers():
         "MlpPolicy",
         "Pendulum-v1",
         n_heads=np.int64(3),
-        alpha=np.float32(0.25),
         mask_prob=np.float64(0.5),
         confidence="fixed",
-        confidence_baseline=np.bool_(True),
+        confidence_kwargs=dict(alpha=np.float32(0.25)),
+        check_finite=np.bool_(True),
         batch_size=np.int32(16),
         buffer_size=np.int64(100),
         policy_kwargs=dict(net_arch=dict(pi_body=[np.int64(8)], pi_head=[8], qf_body=[8, 8], qf_head=[8])),
     )
-    assert (model.n_heads, model.n_actor_heads, model.alpha, model.batch_size) == (3, 3, 0.25, 16)
-    assert type(model.n_heads) is int and type(model.alpha) is float and type(model.confidence_baseline) is bool
-    assert model.policy.confidence.alpha == 0.25 and model.policy.net_arch["pi_body"] == [8]
+    assert (model.n_heads, model.n_actor_heads, model.policy.confidence.alpha, model.batch_size) == (3, 3, 0.25, 16)
+    assert type(model.n_heads) is int and type(model.policy.confidence.alpha) is float and type(model.check_finite) is bool
+    assert model.policy.net_arch["pi_body"] == [8]
 
 
 # ---------------------------------------------------------------- custom confidence strategies

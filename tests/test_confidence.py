@@ -124,7 +124,7 @@ def test_custom_strategy_with_a_wrong_shape_is_refused():
 
 
 def test_ucb_rates_candidates_by_mean_plus_lambda_std_while_exploring_and_by_the_mean_otherwise():
-    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence="ucb", ucb_lambda=2.0, seed=0)
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence="ucb", confidence_kwargs=dict(ucb_lambda=2.0), seed=0)
     strategy = model.policy.confidence
     q_matrix = th.as_tensor(np.random.default_rng(0).normal(size=(8, 3, 3)), dtype=th.float32)  # (B, Kc, Ka)
     obs = th.zeros(8, 3)
@@ -135,7 +135,7 @@ def test_ucb_rates_candidates_by_mean_plus_lambda_std_while_exploring_and_by_the
 
 
 def test_ucb_explores_towards_the_disputed_candidate_and_acts_greedily_on_the_mean():
-    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, confidence="ucb", ucb_lambda=10.0, seed=0)
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, confidence="ucb", confidence_kwargs=dict(ucb_lambda=10.0), seed=0)
     # candidate 0: both heads agree on 1.0; candidate 1: mean 0.5, spread 1.0
     q_matrix = th.tensor([[[1.0, 1.5], [1.0, -0.5]]])
     obs = th.zeros(1, 3)

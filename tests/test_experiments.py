@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_soup import SOUP
+from sb3_soup import SOUP, DecayingNormalActionNoise
 from sb3_soup.checkpoint import latest_checkpoint
 from sb3_soup.experiments import logs
 from sb3_soup.experiments.__main__ import main
@@ -314,6 +314,10 @@ def test_every_suite_variant_builds_the_model_it_names():
                 default = SOUP("MlpPolicy", env, _init_setup_model=False)
                 expected[name] = (default.n_actor_heads, default.n_critic_heads, default.confidence, default.mask_prob < 1)
             assert settings == expected[name], (suite, name)
+            # the paper's decaying noise (soup_paper.yml's noise_type 'decaying_normal'), or SOUP's default N(0, 0.1)
+            noise, paper = model.action_noise, VARIANTS[spec.variant].source == "paper"
+            assert isinstance(noise, DecayingNormalActionNoise), (suite, name)
+            assert (noise.sigma[0], noise.decay, noise.sigma_min) == ((0.2, 0.999995, 0.05) if paper else (0.1, 1.0, 0.0))
     env.close()
 
 

@@ -27,9 +27,10 @@ MODELS = {
     "multi_ddpg": dict(preset="multi_ddpg"),
     "dbddpg-none": dict(preset="dbddpg"),
     "soup-adaptive": dict(preset="soup"),
-    "fixed": dict(confidence="fixed", alpha=0.7),
-    "decayed": dict(confidence="decayed", decay=0.99),  # after 60 steps its diagonal is 0.99**60 = 0.55, not 1 or 1/K
-    "ucb": dict(confidence="ucb", ucb_lambda=2.0),  # greedy actions: the mean of the critic heads
+    "fixed": dict(confidence="fixed", confidence_kwargs=dict(alpha=0.7)),
+    # after 60 steps its diagonal is 0.99**60 = 0.55, not 1 or 1/K
+    "decayed": dict(confidence="decayed", confidence_kwargs=dict(decay=0.99)),
+    "ucb": dict(confidence="ucb", confidence_kwargs=dict(ucb_lambda=2.0)),  # greedy actions: the mean of the critic heads
 }
 
 

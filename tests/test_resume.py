@@ -72,7 +72,7 @@ def _state(model: SOUP) -> dict:
             "optimizers": {name: optimizer.state_dict()["state"] for name, optimizer in optimizers.items()},
             "buffer": (buffer.pos, buffer.full, buffer.observations, buffer.actions, buffer.rewards, buffer.masks),
             "active_heads": model._active_pairs,
-            "current_noise_std": model.current_noise_std,
+            "noise": [(noise.n_calls, noise.sigma) for noise in getattr(model.action_noise, "noises", [model.action_noise])],
             "last_obs": model._last_obs,
         }
     )
@@ -131,7 +131,8 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     _assert_same(_state(resumed), recorded.snapshot)  # step, buffer and masks, networks, Adam and strategy state, noise
     assert resumed.replay_buffer.pos == steps and resumed.replay_buffer.masks.shape == (2000, 1, 3)
     assert float(resumed.policy.confidence.reward_baseline) != 0.0  # adaptive strategy's state came back
-    assert resumed.current_noise_std == pytest.approx(max(0.05, 0.5 * 0.995**steps))
+    # the noise's schedule: one draw per step after the warm-up
+    assert resumed.action_noise.sigma[0] == pytest.approx(max(0.05, 0.5 * 0.995 ** (steps - KWARGS["learning_starts"])))
     continued = Recorder()
     resumed.learn(more, callback=continued, reset_num_timesteps=False)
     assert resumed.num_timesteps == steps + more
@@ -152,7 +153,7 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
     confidence_adam = faithful.policy.confidence.optimizer.state_dict()["state"]
     assert all(int(state["step"]) == confidence_updates for state in confidence_adam.values())
     assert faithful._n_updates == confidence_updates
-    assert faithful.current_noise_std == pytest.approx(max(0.05, 0.5 * 0.995**sb3_steps))
+    assert faithful.action_noise.sigma[0] == pytest.approx(max(0.05, 0.5 * 0.995 ** (sb3_steps - KWARGS["learning_starts"])))
     faithful.learn(50, reset_num_timesteps=False)
     assert faithful.num_timesteps == sb3_steps + 50 and faithful.replay_buffer.pos == sb3_steps + 49
 
@@ -162,7 +163,14 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
 
 def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
     """Two envs, all-heads training, decayed confidence; SB3's way of resuming (same files) gives another run."""
-    kwargs = dict(n_heads=3, train_heads="all", confidence="decayed", decay=0.99, learning_starts=30, batch_size=16)
+    kwargs = dict(
+        n_heads=3,
+        train_heads="all",
+        confidence="decayed",
+        confidence_kwargs=dict(decay=0.99),
+        learning_starts=30,
+        batch_size=16,
+    )
     kwargs.update(buffer_size=1000, policy_kwargs=TINY, seed=5)
 
     def new_env():

@@ -201,21 +201,14 @@ def test_a_zero_learning_rate_freezes_the_critic():  # SB3's test_cnn sets model
 
 
 @pytest.mark.parametrize("noise_class", [NormalActionNoise, OrnsteinUhlenbeckActionNoise])
-def test_action_noise_replaces_the_builtin_noise(noise_class):  # SB3's test_deterministic_pg
+def test_action_noise_is_sb3s(noise_class):  # SB3's test_deterministic_pg
     action_noise = noise_class(np.zeros(1), 0.1 * np.ones(1))
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # default noise arguments: no conflict
+        warnings.simplefilter("error")
         model = SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[64, 64]), action_noise=action_noise, **TINY)
     model.learn(50)
-    assert model.current_noise_std == 0.0 and model.policy.current_noise_std == 0.0
-    assert "train/noise_std" in model.logger.name_to_value
-
-
-def test_builtin_noise_arguments_with_an_action_noise_warn():
-    noise = NormalActionNoise(np.zeros(1), 0.1 * np.ones(1))
-    message = r"replaces SOUP's built-in Gaussian noise: noise_std=0.3, noise_decay=0.999 are unused"
-    with pytest.warns(UserWarning, match=message):
-        SOUP("MlpPolicy", "Pendulum-v1", action_noise=noise, noise_std=0.3, noise_decay=0.999)
+    assert model.action_noise is action_noise
+    assert "train/noise_std" not in model.logger.name_to_value  # logged for a DecayingNormalActionNoise (the default)
 
 
 # ----- spaces --------------------------------------------------------------------------------------------------------
@@ -526,9 +519,9 @@ def test_zoo_td3_entry_builds_and_trains_soup(tmp_path):
     model = setup[0]
     assert isinstance(model, SOUP) and model.policy_kwargs == dict(net_arch=[400, 300])
     assert model.policy.net_arch["pi_body"] == [400] and model.policy.net_arch["qf_head"] == [300]
-    assert isinstance(model.action_noise, NormalActionNoise) and model.noise_std == 0.1  # no conflict, no warning
+    assert isinstance(model.action_noise, NormalActionNoise)
     model.learn(120)
-    assert model._n_updates == 20 and model.current_noise_std == 0.0
+    assert model._n_updates == 20
 
 
 @pytest.mark.slow
@@ -540,6 +533,5 @@ def test_zoo_td3_entry_trains_with_soup_from_the_command_line(tmp_path):
     args += ["-n", "300", "-f", "logs", "--hyperparams", "learning_starts:100", "--seed", "0"]
     result = check(run(args, tmp_path, timeout=900))
     assert "Applying normal noise with std 0.1" in result.stdout
-    assert "replaces SOUP's built-in Gaussian noise" not in result.stderr
     model = SOUP.load(tmp_path / "logs" / "soup" / "Pendulum-v1_1" / "Pendulum-v1.zip")
     assert model.policy_kwargs == dict(net_arch=[400, 300]) and model._n_updates == 200

@@ -111,7 +111,15 @@ def test_a_policy_refuses_unpaired_head_counts():
 
 
 def test_policy_select_matches_the_equation_on_its_own_networks():
-    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=4, confidence="fixed", alpha=0.7, seed=3, learning_starts=10)
+    model = SOUP(
+        "MlpPolicy",
+        "Pendulum-v1",
+        n_heads=4,
+        confidence="fixed",
+        confidence_kwargs=dict(alpha=0.7),
+        seed=3,
+        learning_starts=10,
+    )
     obs = th.as_tensor(np.random.default_rng(0).normal(size=(6, 3)), dtype=th.float32)
     with th.no_grad():
         selection = model.policy.select(obs)

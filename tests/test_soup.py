@@ -1,5 +1,7 @@
 """SOUP as an SB3 algorithm: presets, strategies, VecEnvs, Dict observations, callbacks, save/load, seeding, errors."""
 
+import re
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -9,7 +11,7 @@ from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
-from sb3_soup import PRESETS, SOUP, BootstrappedDictReplayBuffer
+from sb3_soup import PRESETS, SOUP, BootstrappedDictReplayBuffer, DecayingNormalActionNoise
 
 SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2000)
 
@@ -30,7 +32,8 @@ class DictPendulum(gym.ObservationWrapper):
 @pytest.mark.parametrize("preset", sorted(PRESETS))
 @pytest.mark.parametrize("train_heads", ["active", "all"])
 def test_every_preset_learns_a_few_hundred_steps(preset, train_heads):
-    model = SOUP.preset(preset, "MlpPolicy", "Pendulum-v1", n_heads=3, train_heads=train_heads, seed=0, **SMALL)
+    model = SOUP("MlpPolicy", "Pendulum-v1", preset=preset, n_heads=3, train_heads=train_heads, seed=0, **SMALL)
+    assert model.preset == preset
     model.learn(250)
     assert model.num_timesteps == 250
     expected_heads = {k: (3 if v == "K" else v) for k, v in PRESETS[preset].items() if k.startswith("n_")}
@@ -100,7 +103,8 @@ def test_dict_observations(tmp_path):
 @pytest.mark.parametrize("confidence", ["adaptive", "decayed"])
 def test_save_load_gives_identical_actions_and_state(tmp_path, confidence):
     # a decaying noise, so that its schedule is part of the state that must survive
-    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=4, confidence=confidence, noise_decay=0.999, seed=0, **SMALL)
+    noise = DecayingNormalActionNoise(np.zeros(1), np.full(1, 0.1), decay=0.999)
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=4, confidence=confidence, action_noise=noise, seed=0, **SMALL)
     model.learn(300)
     model.save(tmp_path / "soup")
     loaded = SOUP.load(tmp_path / "soup", env=make_vec_env("Pendulum-v1"))
@@ -117,7 +121,8 @@ def test_save_load_gives_identical_actions_and_state(tmp_path, confidence):
         assert float(loaded.policy.confidence.reward_baseline) == float(model.policy.confidence.reward_baseline)
     else:
         assert float(loaded.policy.confidence.n_steps) == 300  # one decay per env-step
-    assert loaded.current_noise_std == model.current_noise_std < model.noise_std
+    assert loaded.action_noise.n_calls == model.action_noise.n_calls == 300 - SMALL["learning_starts"]
+    assert loaded.action_noise.sigma == model.action_noise.sigma < 0.1  # the schedule goes on where it was
     assert (loaded.n_heads, loaded.confidence, loaded.mask_prob) == (4, confidence, model.mask_prob)
     loaded.learn(100, reset_num_timesteps=False)
     assert loaded.num_timesteps == 400
@@ -153,22 +158,47 @@ def test_callbacks_progress_bar_and_tensorboard(tmp_path):
     assert np.isfinite(mean_reward)
 
 
-def test_stochastic_predict_adds_the_scheduled_noise():
-    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, noise_std=0.5, noise_decay=1.0, noise_std_min=0.0)
-    obs = np.zeros((500, 3), dtype=np.float32)
-    deterministic = model.predict(obs, deterministic=True)[0]
-    noisy = model.predict(obs, deterministic=False)[0]
-    assert np.all(deterministic == deterministic[0])
-    # noise of std 0.5 in the [-1, 1] scale, i.e. 1.0 for Pendulum's [-2, 2] torque (a little less after clipping)
-    assert 0.7 < np.std(noisy - deterministic) < 1.1
+def test_stochastic_predict_adds_no_noise_as_td3s():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2)
+    obs = np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32)
+    # the adaptive strategy explores with the weights it acts greedily with: the same actions, no noise added
+    assert np.array_equal(model.predict(obs, deterministic=False)[0], model.predict(obs, deterministic=True)[0])
 
 
-def test_noise_std_decays_per_step_down_to_its_floor():
-    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, noise_std=0.4, noise_decay=0.99, noise_std_min=0.1, **SMALL)
-    model.learn(60)
-    assert model.current_noise_std == pytest.approx(max(0.1, 0.4 * 0.99**60))
-    model.learn(200, reset_num_timesteps=False)
-    assert model.current_noise_std == pytest.approx(0.1)
+def test_the_default_noise_is_a_constant_normal_noise_of_std_01():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, **SMALL)
+    assert isinstance(model.action_noise, DecayingNormalActionNoise) and model.action_noise.decay == 1.0
+    np.testing.assert_array_equal(model.action_noise.sigma, [0.1])
+    model.learn(SMALL["learning_starts"] + 10)
+    assert model.action_noise.n_calls == 10  # none during the random warm-up
+    np.testing.assert_array_equal(model.action_noise.sigma, [0.1])
+    assert model.logger.name_to_value["train/noise_std"] == 0.1
+
+
+def test_noise_std_decays_per_draw_down_to_its_floor():
+    noise = DecayingNormalActionNoise(np.zeros(1), np.full(1, 0.4), decay=0.99, sigma_min=0.1)
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, action_noise=noise, **SMALL)
+    model.learn(60)  # 10 draws after the warm-up, none in it
+    assert model.action_noise is noise and noise.sigma[0] == pytest.approx(max(0.1, 0.4 * 0.99**10))
+    model.learn(200, reset_num_timesteps=False)  # reset() at the episodes' ends leaves the schedule where it is
+    assert noise.sigma[0] == pytest.approx(0.1) and noise.n_calls == 210
+
+
+def test_the_decaying_noise_draws_what_numpy_draws():
+    noise = DecayingNormalActionNoise(np.zeros(2), np.full(2, 0.2), decay=0.5, sigma_min=0.06)
+    np.random.seed(0)
+    draws = np.stack([noise() for _ in range(3)])
+    np.random.seed(0)
+    expected = np.stack([np.random.normal(0.0, std, size=2) for std in (0.2, 0.1, 0.06)])
+    assert draws.dtype == np.float64 and np.array_equal(draws, expected)
+    noise.reset()
+    assert noise.n_calls == 3  # reset() is the end of an episode, not of the schedule
+    with pytest.raises(ValueError, match=re.escape("decay must be a float in (0, 1] (the noise std's decay per draw)")):
+        DecayingNormalActionNoise(np.zeros(1), np.ones(1), decay=1.5)
+    with pytest.raises(ValueError, match=re.escape("sigma_min must be a float in [0, inf)")):
+        DecayingNormalActionNoise(np.zeros(1), np.ones(1), sigma_min=-0.1)
+    with pytest.raises(ValueError, match=re.escape("sigma must be finite and >= 0")):
+        DecayingNormalActionNoise(np.zeros(1), -np.ones(1))
 
 
 def test_non_box_action_spaces_are_refused():
@@ -184,20 +214,16 @@ def test_non_box_action_spaces_are_refused():
         (dict(n_actor_heads=3, n_critic_heads=2), "n_actor_heads"),
         (dict(mask_prob=0.0), "mask_prob"),
         (dict(mask_prob=1.2), "mask_prob"),
-        (dict(alpha=1.0), "alpha"),
-        (dict(alpha=0.0), "alpha"),
-        (dict(decay=0.0), "decay"),
-        (dict(temperature=0.0), "temperature"),
-        (dict(confidence_lr=-1.0), "confidence_lr"),
-        (dict(noise_std=-0.1), "noise_std"),
-        (dict(noise_decay=1.5), "noise_decay"),
+        (dict(confidence="fixed", confidence_kwargs=dict(alpha=1.0)), "alpha"),
+        (dict(confidence="fixed", confidence_kwargs=dict(alpha=0.0)), "alpha"),
+        (dict(confidence="decayed", confidence_kwargs=dict(decay=0.0)), "decay"),
+        (dict(confidence_kwargs=dict(temperature=0.0)), "temperature"),
+        (dict(confidence_kwargs=dict(lr=-1.0)), "lr"),
         (dict(confidence="sometimes"), "confidence"),
         (dict(confidence=42), "confidence"),
         (dict(preset="td3"), "preset"),
         (dict(preset="dbddpg", confidence="adaptive"), "preset"),
         (dict(train_heads="some"), "train_heads"),
-        (dict(tau=0.0), "tau"),
-        (dict(gamma=1.5), "gamma"),
         (dict(policy_kwargs=dict(net_arch="big")), "net_arch"),
         (dict(policy_kwargs=dict(net_arch=dict(qf_body=[64]))), "qf_body"),
         (dict(policy_kwargs=dict(net_arch=dict(pi=[64]))), "net_arch"),
@@ -214,7 +240,7 @@ def test_invalid_arguments_name_the_parameter(kwargs, parameter):
 
 def test_preset_names_are_forgiving_and_explicit_settings_must_agree():
     model = SOUP("MlpPolicy", "Pendulum-v1", preset="MA-BDDPG", n_heads=4)
-    assert (model.n_actor_heads, model.n_critic_heads, model.confidence) == (1, 4, "none")
+    assert (model.n_actor_heads, model.n_critic_heads, model.confidence, model.preset) == (1, 4, "none", "ma_bddpg")
     assert SOUP("MlpPolicy", "Pendulum-v1", preset="ddpg").mask_prob == 1.0
     assert SOUP("MlpPolicy", "Pendulum-v1", preset="soup", confidence="adaptive").confidence == "adaptive"
     with pytest.raises(ValueError, match="preset='multi_ddpg' sets n_critic_heads=1"):

@@ -6,12 +6,13 @@ K = 1 is DDPG.
 
 import copy
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.logger import Logger
 
-from sb3_soup import SOUP, paper_settings
+from sb3_soup import SOUP, DecayingNormalActionNoise, paper_settings
 from sb3_soup.buffers import BootstrappedReplayBufferSamples
 
 BATCH = 16
@@ -304,10 +305,16 @@ def test_learning_rates_are_sb3s_by_default_and_the_papers_with_paper_settings()
     model = _model()
     assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
     assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
-    paper = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, **paper_settings())
+    env = gym.make("Pendulum-v1")
+    paper = SOUP("MlpPolicy", env, n_heads=2, **paper_settings(env.action_space))
     assert paper.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-4)
     assert paper.critic.optimizer.param_groups[0]["lr"] == pytest.approx(3e-4)
     assert (paper.batch_size, paper.tau, paper.train_heads, paper.target_q) == (1024, 1e-3, "active", "own")
+    noise = paper.action_noise  # the paper mode's decaying noise
+    assert isinstance(noise, DecayingNormalActionNoise) and (noise.decay, noise.sigma_min) == (0.999995, 0.05)
+    np.testing.assert_array_equal(noise.sigma, [0.2])
+    # its confidence network's lr and temperature mode are the adaptive strategy's defaults
+    assert (paper.policy.confidence.lr, paper.policy.confidence.temperature_mode) == (1e-4, "absolute")
 
 
 def test_critic_learning_rate_schedule_is_applied():

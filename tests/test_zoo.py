@@ -16,12 +16,14 @@ import venv
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
+from gymnasium import spaces
 
 import _sb3_soup_zoo_hook
 from sb3_soup import paper_settings, zoo
-from sb3_soup.presets import hyperparams_file
+from sb3_soup.presets import PAPER_NOISE, hyperparams_file, paper_hyperparams
 
 REPO = Path(__file__).resolve().parent.parent
 ENV_ID = "Pendulum-v1"
@@ -82,6 +84,32 @@ def test_registration_is_idempotent():
     # wrapped once: the wrapper wraps the Zoo's own __init__
     assert ExperimentManager.__init__ is init
     assert not hasattr(init.__wrapped__, "__wrapped__")
+
+
+def test_paper_entries_get_their_decaying_noise(tmp_path):
+    """soup_paper.yml's noise_type 'decaying_normal' (noise_std, noise_decay, noise_std_min) is built by the Zoo hook."""
+    import argparse
+
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    from sb3_soup import DecayingNormalActionNoise
+
+    zoo.register()
+    zoo.register()  # wrapped once
+    entry = yaml.safe_load(hyperparams_file("soup_paper").read_text())["Hopper-v4"]
+    conf = tmp_path / "paper.yml"
+    conf.write_text(yaml.safe_dump({ENV_ID: {**entry, "n_heads": 2, "buffer_size": 1000, "batch_size": 16}}))
+    manager = ExperimentManager(
+        argparse.Namespace(), "soup", ENV_ID, str(tmp_path / "logs"), n_timesteps=40, eval_freq=-1, config=str(conf),
+        hyperparams=dict(learning_starts=20), seed=0, verbose=0, device="cpu",
+    )  # fmt: skip
+    setup = manager.setup_experiment()
+    assert setup is not None
+    noise = setup[0].action_noise
+    assert isinstance(noise, DecayingNormalActionNoise) and (noise.decay, noise.sigma_min) == (0.999995, 0.05)
+    np.testing.assert_array_equal(noise.sigma, [0.2])
+    setup[0].learn(40)
+    assert noise.n_calls == 20
 
 
 def test_default_conf_file_only_for_soup_without_conf_file(tmp_path):
@@ -184,12 +212,21 @@ def test_pandareach_entry_trains_from_the_command_line(tmp_path):
 
 
 def test_paper_hyperparams_file_is_paper_settings():
-    """soup_paper.yml's MuJoCo entries are sb3_soup.paper_settings() (Section 5 of the paper), with the Zoo's warm-up."""
+    """soup_paper.yml's MuJoCo entries are sb3_soup.paper_settings() (Section 5 of the paper), with the Zoo's warm-up
+    (and the noise as the Zoo's keys, sb3_soup.presets.paper_hyperparams())."""
     entries = yaml.safe_load(hyperparams_file("soup_paper").read_text())
     paper = entries["Hopper-v4"]
     assert (paper["learning_rate"], paper["critic_learning_rate"], paper["gamma"], paper["tau"]) == (1e-4, 3e-4, 0.99, 1e-3)
     assert (paper["batch_size"], paper["buffer_size"], paper["n_heads"]) == (1024, 1_000_000, 10)
-    settings = paper_settings()
+    settings = paper_hyperparams()
+    assert (
+        {key: settings[key] for key in PAPER_NOISE}
+        == PAPER_NOISE
+        == dict(noise_type="decaying_normal", noise_std=0.2, noise_decay=0.999995, noise_std_min=0.05)
+    )
+    assert {key: value for key, value in paper_settings(spaces.Box(-1, 1, (2,))).items() if key != "action_noise"} == {
+        key: value for key, value in settings.items() if key not in PAPER_NOISE
+    }
     for key, value in paper.items():
         if key == "policy_kwargs":
             assert eval(value) == settings[key]
@@ -219,13 +256,16 @@ def test_sampled_hyperparameters_build_soup():
     for _ in range(12):
         trial = study.ask()
         kwargs = sample_soup_params(trial, n_actions=1, n_envs=1, additional_args={})
-        # what --trial-id rebuilds from the stored values is what the trial trained
-        assert convert_soup_params(trial.params) == kwargs
+        # what --trial-id rebuilds from the stored values is what the trial trained (the Zoo builds the noise of its keys)
+        converted = convert_soup_params(trial.params)
+        assert converted.pop("noise_type") == "decaying_normal" and kwargs["action_noise"].decay == 1.0
+        np.testing.assert_array_equal(kwargs.pop("action_noise").sigma, [converted.pop("noise_std")])
+        assert converted == kwargs
         assert 64 <= kwargs["batch_size"] <= 1024 and 0.97 <= kwargs["gamma"] < 1
         assert kwargs["gradient_steps"] == kwargs["train_freq"]
-        assert ("confidence_lr" in kwargs) == (kwargs["confidence"] == "adaptive")
+        assert ("confidence_kwargs" in kwargs) == (kwargs["confidence"] == "adaptive")
         seen.add(kwargs["confidence"])
-        model = SOUP(env=ENV_ID, policy="MlpPolicy", buffer_size=1000, **kwargs)
+        model = SOUP(env=ENV_ID, policy="MlpPolicy", buffer_size=1000, **converted)
         assert model.policy is not None
         study.tell(trial, 0.0)
     assert len(seen) > 1

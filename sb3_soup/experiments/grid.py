@@ -55,11 +55,12 @@ class Variant:
     :param same_as: another variant that trains exactly the same model (e.g. the confidence suite's ``none`` is the
         models suite's ``dbddpg``): its runs are shared, stored under that variant's name, as long as no
         ``--hyperparams`` override tells them apart
-    :param source: where its hyper-parameters come from: ``"paper"``, the paper's (:func:`sb3_soup.paper_settings` and
-        ``hyperparams/soup_paper.yml``'s entry for the env; the SB3 peers take the keys they share with SOUP, see
-        :func:`peer_hyperparams`); ``"defaults"``, SOUP's defaults (its constructor's, and ``hyperparams/soup.yml``'s
-        entry, what ``rl_zoo3.train --algo soup`` uses); or ``"zoo"``, the RL Zoo's own entry for the algorithm and the
-        env (``rl_zoo3/hyperparams/td3.yml``, ``ddpg.yml``), as the Zoo trains it
+    :param source: where its hyper-parameters come from: ``"paper"``, the paper's
+        (:func:`sb3_soup.presets.paper_hyperparams` and ``hyperparams/soup_paper.yml``'s entry for the env; the SB3
+        peers take the keys they share with SOUP, see :func:`peer_hyperparams`); ``"defaults"``, SOUP's defaults (its
+        constructor's, and ``hyperparams/soup.yml``'s entry, what ``rl_zoo3.train --algo soup`` uses); or ``"zoo"``, the
+        RL Zoo's own entry for the algorithm and the env (``rl_zoo3/hyperparams/td3.yml``, ``ddpg.yml``), as the Zoo
+        trains it
     """
 
     name: str
@@ -245,7 +246,10 @@ def load_hyperparams(env_id: str, path: str | os.PathLike | None = None, source:
         entries = yaml.safe_load(stream) or {}
     if env_id not in entries:
         return fallback_hyperparams(env_id, source)
-    return {key: value for key, value in dict(entries[env_id]).items() if key not in ZOO_ONLY_KEYS}
+    entry = dict(entries[env_id])
+    # SOUP's decaying noise is SOUP's argument (the runner builds it): its noise_type stays
+    keep = {"noise_type"} if entry.get("noise_type") == "decaying_normal" else set()
+    return {key: value for key, value in entry.items() if key not in ZOO_ONLY_KEYS - keep}
 
 
 def base_hyperparams(source: str, env_id: str, path: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -255,9 +259,9 @@ def base_hyperparams(source: str, env_id: str, path: str | os.PathLike | None = 
     :param path: the user's hyper-parameter file, if any
     :return: SOUP's constructor arguments for the env before a variant's own settings
     """
-    from sb3_soup import paper_settings
+    from sb3_soup.presets import paper_hyperparams
 
-    base = paper_settings() if source == "paper" else soup_defaults()
+    base = paper_hyperparams() if source == "paper" else soup_defaults()
     return {**base, **load_hyperparams(env_id, path, source)}
 
 
@@ -300,14 +304,17 @@ def _format(value: Any, n_heads: int | None) -> Any:
 def peer_hyperparams(params: dict[str, Any]) -> dict[str, Any]:
     """
     Map SOUP hyper-parameters onto SB3's TD3/DDPG: the shared keys, net_arch [256, 256], and the Gaussian
-    exploration noise's std as ``noise_std`` (turned into ``NormalActionNoise`` by the runner).
+    exploration noise's initial std as ``noise_std`` (a constant ``NormalActionNoise``, built by the runner; SOUP's
+    default, 0.1, when SOUP's settings have none).
 
     :param params: resolved SOUP hyper-parameters
     :return: the peer's hyper-parameters
     """
+    from sb3_soup.noise import DEFAULT_NOISE_STD
+
     peer = {key: params[key] for key in PEER_KEYS if key in params}
     peer["policy_kwargs"] = {"net_arch": list(PEER_NET_ARCH)}
-    peer["noise_std"] = params["noise_std"]
+    peer["noise_std"] = params.get("noise_std", DEFAULT_NOISE_STD)
     return peer
 
 

@@ -116,16 +116,21 @@ def build_model(spec: Any, env: Any) -> Any:
     import gymnasium as gym
     import numpy as np
 
+    from sb3_soup.noise import zoo_action_noise
+
     kwargs = dict(spec.hyperparams)
     kwargs["policy_kwargs"] = resolve_policy_kwargs(kwargs.get("policy_kwargs"))
     if kwargs["policy_kwargs"] is None:
         del kwargs["policy_kwargs"]
     policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else "MlpPolicy"
-    if spec.algo != "soup" and "noise_std" in kwargs:
+    # the exploration noise, as the RL Zoo's keys: noise_type "decaying_normal" (the paper's SOUP noise), else a constant
+    # NormalActionNoise of std noise_std (the SB3 peers')
+    kwargs = zoo_action_noise(kwargs, env.action_space.shape)
+    if "noise_std" in kwargs:
         from stable_baselines3.common.noise import NormalActionNoise
 
         n_actions = int(np.prod(env.action_space.shape))
-        noise_std = float(kwargs.pop("noise_std", 0.1))
+        noise_std = float(kwargs.pop("noise_std"))
         kwargs["action_noise"] = NormalActionNoise(np.zeros(n_actions), noise_std * np.ones(n_actions))
     return algo_class(spec.algo)(policy, env, seed=spec.seed, device="cpu", verbose=0, **kwargs)
 
