@@ -68,6 +68,17 @@ class DecayingNormalActionNoise(NormalActionNoise):
         )
 
 
+def check_action_noise(name: str, value: Any) -> ActionNoise | None:
+    """The rule of an ``action_noise`` argument: None (SOUP's N(0, 0.1)) or an SB3 ``ActionNoise``."""
+    if value is not None and not isinstance(value, ActionNoise):
+        raise ValueError(
+            f"{name} must be None (SOUP's N(0, 0.1), see sb3_soup.noise.default_action_noise) or an instance of "
+            f"stable_baselines3.common.noise.ActionNoise (e.g. sb3_soup.DecayingNormalActionNoise), got {value!r} "
+            f"({type(value).__name__})"
+        )
+    return value
+
+
 def default_action_noise(action_shape: tuple[int, ...]) -> DecayingNormalActionNoise:
     """
     :param action_shape: the action space's shape

@@ -32,22 +32,22 @@ from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
 from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
-from sb3_soup.noise import default_action_noise, noise_std
+from sb3_soup.noise import check_action_noise, default_action_noise, noise_std
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
 from sb3_soup.presets import resolve_model
 from sb3_soup.validation import (
     Rule,
+    any_integer,
     boolean,
     check_finite_env_output,
     choice,
-    given,
     integer,
-    is_int,
-    is_number,
     keyword_dict,
+    learning_rate,
     number,
     optional,
+    seed,
 )
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
@@ -73,44 +73,10 @@ TRAIN_HEADS = ("active", "all", "all_critics")
 TARGET_Q = ("own", "min_pair")
 
 
-def _learning_rate(name: str, value: Any) -> Any:
-    if callable(value) or (is_number(value) and math.isfinite(value) and value > 0):
-        return value
-    raise ValueError(
-        f"{name} must be a float > 0 or a schedule (a function of the progress remaining, from 1 to 0), {given(value)}"
-    )
-
-
-def _seed(name: str, value: Any) -> int | None:
-    if value is None:
-        return None
-    if not is_int(value) or not 0 <= value < 2**32:
-        raise ValueError(f"{name} must be None or an integer in [0, 2**32 - 1] (NumPy's seed range), {given(value)}")
-    return int(value)
-
-
-def _integer(meaning: str) -> Rule:
-    def rule(name: str, value: Any) -> int:
-        if not is_int(value):
-            raise ValueError(f"{name} must be an integer ({meaning}), {given(value)}")
-        return int(value)
-
-    return rule
-
-
-def _action_noise(name: str, value: Any) -> Any:
-    if value is not None and not isinstance(value, ActionNoise):
-        raise ValueError(
-            f"{name} must be None (SOUP's N(0, 0.1), see sb3_soup.noise.default_action_noise) or an instance of "
-            f"stable_baselines3.common.noise.ActionNoise (e.g. sb3_soup.DecayingNormalActionNoise), {given(value)}"
-        )
-    return value
-
-
 ARGUMENT_RULES: dict[str, Rule] = {
     # SOUP's own arguments (n_heads, the head counts, preset and mask_prob: sb3_soup.presets.resolve_model; confidence
     # and confidence_kwargs: the policy and the strategy, which take them)
-    "critic_learning_rate": optional(_learning_rate, "the same as learning_rate"),
+    "critic_learning_rate": optional(learning_rate, "the same as learning_rate"),
     "train_heads": choice(TRAIN_HEADS, "which head pairs each gradient step trains"),
     "target_q": choice(TARGET_Q, "which target critic heads each head bootstraps from"),
     "policy_delay": integer(1, "critic updates per actor and target update"),
@@ -124,10 +90,10 @@ ARGUMENT_RULES: dict[str, Rule] = {
         set(_POLICY_ARGUMENTS), "policy", "set them as SOUP arguments (n_heads, preset, confidence, confidence_kwargs...)"
     ),
     # SB3's arguments are SB3's to check, but for those SB3 would fail on without naming them
-    "buffer_size": _integer("replay buffer size"),
-    "n_steps": _integer("steps of the n-step returns, 1 or less: one-step TD targets"),
-    "seed": _seed,
-    "action_noise": _action_noise,
+    "buffer_size": any_integer("replay buffer size"),
+    "n_steps": any_integer("steps of the n-step returns, 1 or less: one-step TD targets"),
+    "seed": seed,
+    "action_noise": check_action_noise,
 }
 """SOUP's rules for its arguments (``SOUP.__init__`` and ``SOUP.load`` check them with :func:`check_arguments`)."""
 
@@ -138,6 +104,37 @@ def check_arguments(**kwargs: Any) -> dict[str, Any]:
     :return: the arguments, each checked by its rule (numbers as Python ``int``/``float``/``bool``)
     """
     return {name: (ARGUMENT_RULES[name](name, value) if name in ARGUMENT_RULES else value) for name, value in kwargs.items()}
+
+
+def check_save_format(data: dict[str, Any], path: Any) -> None:
+    """
+    Refuse a file that is not a SOUP model in this version's save format (:data:`SAVE_FORMAT_VERSION`), saying which
+    versions and what to do: the version check of sb3-soup's model files.
+
+    :param data: the file's ``data`` (:func:`sb3_soup.checkpoint.read_model_data`)
+    :param path: the file, for the message
+    """
+    saved_format = data.get("_sb3_soup_format", 0)  # 0: sb3-soup 0.1.0a0 before the format was stored
+    if saved_format == 0 and not {"n_actor_heads", "n_critic_heads"} <= data.keys():
+        policy = data.get("policy_class")
+        module = policy.get("__module__", "?") if isinstance(policy, dict) else "?"
+        raise ValueError(
+            f"{path} was not saved by SOUP (its policy class comes from {module}): load it with the algorithm that saved "
+            "it (e.g. stable_baselines3.TD3.load)"
+        )
+    if saved_format == SAVE_FORMAT_VERSION:
+        return
+    saved_version = data.get("_sb3_soup_version", "0.1.0a0")
+    if isinstance(saved_format, int) and saved_format > SAVE_FORMAT_VERSION:
+        advice = "upgrade sb3-soup (pip install -U sb3-soup) to load it"
+    elif saved_version == __version__:  # a development version, before its save format changed
+        advice = "it was saved during this version's development, before its format changed: train a new model"
+    else:
+        advice = f"load it with sb3-soup {saved_version} (pip install sb3-soup=={saved_version}), or train a new model"
+    raise ValueError(
+        f"{path} was saved by sb3-soup {saved_version} in save format {saved_format!r}; this sb3-soup {__version__} reads "
+        f"save format {SAVE_FORMAT_VERSION} only: {advice}"
+    )
 
 
 def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
@@ -154,78 +151,63 @@ def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
 
 class SOUP(OffPolicyAlgorithm):
     """
-    Self-Adaptive Double Bootstrapped DDPG (SOUP).
+    Self-Adaptive Double Bootstrapped DDPG (SOUP), Zheng et al., IJCAI 2018: https://www.ijcai.org/proceedings/2018/0444.pdf
 
-    Paper: https://www.ijcai.org/proceedings/2018/0444.pdf (Zheng et al., IJCAI 2018).
-    The details the paper leaves open are fixed as in the project's design spec (see README).
-    DDPG with a bootstrapped actor and critic (shared bodies, K heads): every actor head proposes an action,
-    every critic head scores every proposal, a confidence strategy weights the scores and the best-rated
-    proposal is executed (eq. 7). Each episode trains one randomly drawn (actor head, critic head) pair on the
-    transitions its bootstrap mask lets it see (Algorithm 1), or every pair at once (``train_heads="all"``).
+    DDPG with a bootstrapped actor and critic (shared bodies, K heads): every actor head proposes an action, every
+    critic head scores every proposal, a confidence strategy weights the scores and the best-rated proposal is executed
+    (eq. 7). Each episode trains one randomly drawn (actor head, critic head) pair on the transitions its bootstrap mask
+    lets it see (Algorithm 1), or more pairs (``train_heads``). The details the paper leaves open are fixed as in the
+    project's design spec; the paper's equations mapped to this code: ``docs/equations.md``.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
     :param learning_rate: learning rate for Adam, of the actor and (unless ``critic_learning_rate`` is given) the critic,
-        as in SB3 (SB3's TD3 and DDPG: 1e-3; the paper's actor: 1e-4); it can be a function of the current progress
-        remaining (from 1 to 0)
+        as in SB3; it can be a function of the current progress remaining (from 1 to 0)
     :param critic_learning_rate: the critic's own learning rate (float or schedule; the paper: 3e-4); None (default):
         the critic follows ``learning_rate``, as every optimizer of SB3's TD3 and DDPG does
     :param buffer_size: size of the replay buffer
     :param learning_starts: how many steps of the model to collect transitions for before learning starts
-        (uniformly random actions until then; SB3's default 100, the RL Zoo's MuJoCo entries 10000)
-    :param batch_size: Minibatch size for each gradient update (SB3's TD3: 256; the paper: 1024)
-    :param tau: the soft update coefficient ("Polyak update", between 0 and 1) (SB3's TD3: 0.005; the paper: 1e-3)
+        (uniformly random actions, without noise, until then)
+    :param batch_size: Minibatch size for each gradient update
+    :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
     :param gamma: the discount factor
     :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
         like ``(5, "step")`` or ``(2, "episode")``.
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
-    :param action_noise: the exploration noise, an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] scaled
-        action space as SB3's TD3 and DDPG add it (none during the random warm-up); None (SOUP's rule, unlike TD3's):
-        a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG (:func:`sb3_soup.noise.default_action_noise`). A decaying
-        std (the paper mode's): :class:`sb3_soup.DecayingNormalActionNoise`
-    :param replay_buffer_class: Replay buffer class to use: one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
-        ``HerReplayBuffer`` (for instance), ``NStepReplayBuffer``, for which SOUP builds their bootstrapped versions
-        (see :mod:`sb3_soup.buffers`: they store the masks), or a subclass of those. If ``None``, it will be
-        automatically selected (as SB3 does).
+    :param action_noise: an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] scaled action space, as TD3 adds it;
+        None (SOUP's rule, unlike TD3's): a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG. A decaying std (the
+        paper's): :class:`sb3_soup.DecayingNormalActionNoise`
+    :param replay_buffer_class: None (chosen as SB3 does), one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
+        ``HerReplayBuffer``, ``NStepReplayBuffer``, of which SOUP uses the bootstrapped versions (they store the masks,
+        :mod:`sb3_soup.buffers`), or a subclass of those
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation
-    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
-        (needs ``replay_buffer_kwargs=dict(handle_timeout_termination=False)``, as in SB3)
-    :param n_steps: When n_step > 1, uses n-step return (with the bootstrapped ``NStepReplayBuffer``) when updating the
-        Q-value network (as SB3's TD3). Only used when ``replay_buffer_class`` is ``None``, and not supported for Dict
-        observation spaces; with a custom ``replay_buffer_class``, configure it with
-        ``replay_buffer_kwargs={"n_steps": ..., "gamma": ...}`` instead.
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer, as in SB3
+    :param n_steps: n-step returns (SB3's, with the bootstrapped ``NStepReplayBuffer``) when ``replay_buffer_class`` is
+        None; otherwise ``replay_buffer_kwargs={"n_steps": ..., "gamma": ...}``
     :param n_heads: number of bootstrapped heads K
     :param n_actor_heads: actor heads (default: ``n_heads``, or the preset's)
     :param n_critic_heads: critic heads (default: ``n_heads``, or the preset's)
-    :param preset: one of the paper's models: "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup"
-        (sets head counts and confidence; see :data:`sb3_soup.PRESETS`)
-    :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive"
-        (default, or the preset's), "ucb" (optimistic selection) or a :class:`sb3_soup.ConfidenceStrategy` instance
-    :param confidence_kwargs: the arguments of the strategy that ``confidence`` names, by the class's own names (None:
-        its defaults): ``alpha`` for "fixed" (:class:`sb3_soup.FixedConfidence`), ``decay`` for "decayed"
-        (:class:`sb3_soup.DecayedConfidence`), ``ucb_lambda`` for "ucb" (:class:`sb3_soup.UCBConfidence`), ``lr``,
-        ``temperature``, ``temperature_mode``, ``baseline``... for "adaptive" (:class:`sb3_soup.AdaptiveConfidence`);
-        none with a strategy instance, which has its own
+    :param preset: one of the paper's models (:data:`sb3_soup.PRESETS`): "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg",
+        "soup"; it sets the head counts and the confidence
+    :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive" (default, or
+        the preset's), "ucb" (optimistic selection) or a :class:`sb3_soup.ConfidenceStrategy` instance
+    :param confidence_kwargs: the arguments of the strategy ``confidence`` names, by its class's own names (None: its
+        defaults), e.g. ``alpha`` of :class:`sb3_soup.FixedConfidence`, ``lr`` of :class:`sb3_soup.AdaptiveConfidence`
     :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off
         (default 0.5, 1.0 for the "ddpg" preset)
-    :param train_heads: "active": train the episode's active head pair (the paper); "all": every head pair
-        on each minibatch, each with its own masked loss (Bootstrapped DQN style); "all_critics": every critic head, the
-        active pair's actor head
-    :param target_q: the value of the next state each critic head bootstraps from (eq. 4): "own", its own target head's
-        (the paper); "min_pair", the smaller of its own target head's and one random other's (clipped double Q across
-        the ensemble, as REDQ); with one critic head both are "own"
-    :param policy_delay: the actor and the target networks are updated once every ``policy_delay`` critic updates
-        (TD3's delayed policy updates; the paper: 1)
-    :param target_policy_noise: std of the Gaussian noise added to the target actions (TD3's target policy smoothing;
-        the paper: 0, none), in the [-1, 1] scaled action space
+    :param train_heads: "active": the episode's active head pair (the paper); "all": every head pair, each with its own
+        masked loss; "all_critics": every critic head, the active pair's actor head
+    :param target_q: the next state's value each critic head bootstraps from (eq. 4): "own", its own target head's (the
+        paper); "min_pair", the smaller of its own and one random other's (clipped double Q across the ensemble)
+    :param policy_delay: the actor and the targets are updated once every ``policy_delay`` critic updates (TD3's)
+    :param target_policy_noise: std of the noise added to the target actions (TD3's target policy smoothing; 0: none)
     :param target_noise_clip: limit of the absolute value of that noise
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
     :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
         the reported success rate, mean episode length, and mean reward over
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (``net_arch`` in SOUP's or SB3's
-        forms, ``activation_fn``...; see :class:`SOUPPolicy`); SOUP's own (head counts, confidence) are its arguments,
-        so ``self.policy_kwargs`` stays what was passed, as SB3's ``load(..., policy_kwargs=...)`` expects
+        forms, ``activation_fn``...; see :class:`SOUPPolicy`), kept as passed (SB3's ``load`` compares them)
     :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
         debug messages
     :param seed: Seed for the pseudo random generators
@@ -625,74 +607,27 @@ class SOUP(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfSOUP:
         """
-        SB3's ``load``, after checking that the file is a complete SOUP model in this version's save format: the model
-        as it was saved (its head counts, preset, strategy and settings), with the random generators seeded with its
-        seed, as SB3 does (:mod:`sb3_soup.checkpoint` resumes a run exactly).
-
-        :param path: path to the file (or a file-like) where to load the agent from
-        :param env: the new environment to run the loaded model on (None: prediction only)
-        :param device: Device on which the code should run
-        :param custom_objects: objects to use instead of the saved ones (see SB3's ``load``)
-        :param print_system_info: print the saved and the current system info
-        :param force_reset: reset the environment before training (False: continue from the saved last observation,
-            for an environment restored to the same state, see :mod:`sb3_soup.checkpoint`)
-        :param kwargs: settings to change when loading (e.g. ``learning_starts``); the ones that shape the networks or
-            the strategy (head counts, preset, confidence and its parameters) are fixed by the file
-        :return: the model
+        SB3's ``load`` (see there for the parameters), once the file is checked to be a complete SOUP model in this
+        version's save format (:func:`check_save_format`). ``kwargs`` may change settings (e.g. ``learning_starts``),
+        not those that shape the networks or the strategy (head counts, preset, confidence): the file's.
         """
         data = read_model_data(path)
-        cls._check_saved_data(data, path)
+        check_save_format(data, path)
         fixed = sorted(set(kwargs) & set(_STRUCTURAL_ARGUMENTS))
         if fixed:
+            saved = ", ".join(f"{key}={data.get(key)!r}" for key in fixed if ":serialized:" not in str(data.get(key)))
             raise ValueError(
-                f"{fixed} cannot be changed when loading: the saved model was built with "
-                + ", ".join(f"{key}={data.get(key)!r}" for key in fixed if not isinstance(data.get(key), dict))
-                + "; create a new SOUP to use other values"
+                f"{fixed} cannot be changed when loading: the saved model was built with {saved or 'other objects'}; "
+                "create a new SOUP to use other values"
             )
-        kwargs = check_arguments(**kwargs)
-        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **check_arguments(**kwargs))
         model._sb3_soup_version = __version__  # from now on this version's model
         return model
 
-    @staticmethod
-    def _check_saved_data(data: dict[str, Any], path: Any) -> None:
-        """Refuse a file that is not a SOUP model in this version's save format, saying which versions and what to do."""
-        saved_format = data.get("_sb3_soup_format", 0)  # 0: sb3-soup 0.1.0a0 before the format was stored
-        if saved_format == 0 and not {"n_actor_heads", "n_critic_heads"} <= data.keys():
-            policy = data.get("policy_class")
-            module = policy.get("__module__", "?") if isinstance(policy, dict) else "?"
-            raise ValueError(
-                f"{path} was not saved by SOUP (its policy class comes from {module}): load it with the algorithm that "
-                "saved it (e.g. stable_baselines3.TD3.load)"
-            )
-        if saved_format == SAVE_FORMAT_VERSION:
-            return
-        saved_version = data.get("_sb3_soup_version", "0.1.0a0")
-        if isinstance(saved_format, int) and saved_format > SAVE_FORMAT_VERSION:
-            advice = "upgrade sb3-soup (pip install -U sb3-soup) to load it"
-        elif saved_version == __version__:  # a development version, before its save format changed
-            advice = "it was saved during this version's development, before its format changed: train a new model"
-        else:
-            advice = f"load it with sb3-soup {saved_version} (pip install sb3-soup=={saved_version}), or train a new model"
-        raise ValueError(
-            f"{path} was saved by sb3-soup {saved_version} in save format {saved_format!r}; this sb3-soup {__version__} "
-            f"reads save format {SAVE_FORMAT_VERSION} only: {advice}"
-        )
-
     def set_parameters(
-        self,
-        load_path_or_dict: str | dict[str, Any],
-        exact_match: bool = True,
-        device: th.device | str = "auto",
+        self, load_path_or_dict: str | dict[str, Any], exact_match: bool = True, device: th.device | str = "auto"
     ) -> None:
-        """
-        Load parameters from a saved model (or a dict) into this model's networks, which must have their shapes;
-        a model saved with other head counts or sizes is loaded with :meth:`load`, which builds it as saved.
-
-        :param load_path_or_dict: the saved model, or a dict of state dicts
-        :param exact_match: every parameter of this model must be set
-        :param device: Device on which the code should run
-        """
+        """SB3's ``set_parameters``, saying what to do when the saved networks have other shapes (``SOUP.load``)."""
         try:
             super().set_parameters(load_path_or_dict, exact_match, device)
         except RuntimeError as error:

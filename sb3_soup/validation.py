@@ -109,6 +109,35 @@ def optional(inner: Rule, meaning: str) -> Rule:
     return rule
 
 
+def learning_rate(name: str, value: Any) -> Any:
+    """A learning rate: a float > 0 or a schedule (a function of the progress remaining, from 1 to 0)."""
+    if callable(value) or (is_number(value) and math.isfinite(value) and value > 0):
+        return value
+    raise ValueError(
+        f"{name} must be a float > 0 or a schedule (a function of the progress remaining, from 1 to 0), {given(value)}"
+    )
+
+
+def seed(name: str, value: Any) -> int | None:
+    """A seed: None or an integer in NumPy's seed range."""
+    if value is None:
+        return None
+    if not is_int(value) or not 0 <= value < 2**32:
+        raise ValueError(f"{name} must be None or an integer in [0, 2**32 - 1] (NumPy's seed range), {given(value)}")
+    return int(value)
+
+
+def any_integer(meaning: str = "") -> Rule:
+    """An integer, of any sign."""
+
+    def rule(name: str, value: Any) -> int:
+        if not is_int(value):
+            raise ValueError(f"{name} must be an integer{_meaning(meaning)}, {given(value)}")
+        return int(value)
+
+    return rule
+
+
 def keyword_dict(reserved: set[str], where: str, advice: str) -> Rule:
     """``None`` or a dict of keyword arguments that sets none of ``reserved`` (``advice`` says where they go)."""
 
