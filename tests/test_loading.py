@@ -188,6 +188,9 @@ def test_other_head_counts_and_presets_load_as_saved(tmp_path, kwargs):
 def test_load_refuses_to_change_the_structure_and_checks_other_settings(saved):
     with pytest.raises(ValueError, match=r"\['confidence', 'n_heads'\] cannot be changed when loading: .*n_heads=3"):
         SOUP.load(saved / "model.zip", n_heads=5, confidence="none")
+    with pytest.raises(ValueError, match=r"\['confidence_kwargs'\] cannot be changed when loading: the saved model was built "
+                       r"with confidence_kwargs=None; create a new SOUP"):  # fmt: skip
+        SOUP.load(saved / "model.zip", confidence_kwargs=dict(lr=1e-3))
     with pytest.raises(ValueError, match=re.escape("train_heads must be one of ('active', 'all', 'all_critics')")):
         SOUP.load(saved / "model.zip", train_heads="every")
     loaded = SOUP.load(saved / "model.zip", learning_starts=np.int64(5), train_heads="all")
