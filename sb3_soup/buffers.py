@@ -18,8 +18,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, NStepReplayBuffer, ReplayBuffer
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, TensorDict
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
-from stable_baselines3.her.goal_selection_strategy import GoalSelectionStrategy
+from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_soup.validation import integer, number
@@ -53,6 +52,15 @@ class _MaskStorage:
     pos: int
     masks: np.ndarray  # (buffer_size, n_envs, K) bool
 
+    def __init__(self, *args: Any, n_masks: int = 1, mask_prob: float = 1.0, **kwargs: Any) -> None:
+        """SB3's buffer's arguments, then the masks': ``n_masks`` per transition, each 1 with ``mask_prob``."""
+        super().__init__(*args, **kwargs)
+        self._init_masks(n_masks, mask_prob)
+
+    def add(self, *args: Any, **kwargs: Any) -> None:
+        self._store_masks()
+        super().add(*args, **kwargs)  # type: ignore[misc]
+
     def _init_masks(self, n_masks: int, mask_prob: float) -> None:
         n_masks = integer(1, "the number of bootstrapped head pairs")("n_masks", n_masks)
         mask_prob = number(0.0, 1.0, True, False, "probability that a head sees a transition; 1 turns bootstrap off")(
@@ -83,27 +91,6 @@ class BootstrappedReplayBuffer(_MaskStorage, ReplayBuffer):
     :param mask_prob: probability that a head sees a transition; 1 turns bootstrapping off
     """
 
-    def __init__(
-        self,
-        buffer_size: int,
-        observation_space: spaces.Space,
-        action_space: spaces.Space,
-        device: th.device | str = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        n_masks: int = 1,
-        mask_prob: float = 1.0,
-    ):
-        super().__init__(
-            buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage, handle_timeout_termination
-        )
-        self._init_masks(n_masks, mask_prob)
-
-    def add(self, *args: Any, **kwargs: Any) -> None:
-        self._store_masks()
-        super().add(*args, **kwargs)
-
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> BootstrappedReplayBufferSamples:  # type: ignore[override]
         env_indices = self._sample_env_indices(len(batch_inds))
         if self.optimize_memory_usage:
@@ -128,27 +115,6 @@ class BootstrappedDictReplayBuffer(_MaskStorage, DictReplayBuffer):
     :param n_masks: number of masks per transition (number of bootstrapped heads K)
     :param mask_prob: probability that a head sees a transition; 1 turns bootstrapping off
     """
-
-    def __init__(
-        self,
-        buffer_size: int,
-        observation_space: spaces.Dict,
-        action_space: spaces.Space,
-        device: th.device | str = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        n_masks: int = 1,
-        mask_prob: float = 1.0,
-    ):
-        super().__init__(
-            buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage, handle_timeout_termination
-        )
-        self._init_masks(n_masks, mask_prob)
-
-    def add(self, *args: Any, **kwargs: Any) -> None:
-        self._store_masks()
-        super().add(*args, **kwargs)
 
     def _get_samples(  # type: ignore[override]
         self, batch_inds: np.ndarray, env: VecNormalize | None = None
@@ -181,42 +147,10 @@ class BootstrappedHerReplayBuffer(_MaskStorage, HerReplayBuffer):
     :param mask_prob: probability that a head sees a transition; 1 turns bootstrapping off
     """
 
-    def __init__(
-        self,
-        buffer_size: int,
-        observation_space: spaces.Dict,
-        action_space: spaces.Space,
-        env: VecEnv | None,
-        device: th.device | str = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        n_sampled_goal: int = 4,
-        goal_selection_strategy: GoalSelectionStrategy | str = "future",
-        copy_info_dict: bool = False,
-        n_masks: int = 1,
-        mask_prob: float = 1.0,
-    ):
-        super().__init__(
-            buffer_size,
-            observation_space,
-            action_space,
-            env,  # type: ignore[arg-type]
-            device=device,
-            n_envs=n_envs,
-            optimize_memory_usage=optimize_memory_usage,
-            handle_timeout_termination=handle_timeout_termination,
-            n_sampled_goal=n_sampled_goal,
-            goal_selection_strategy=goal_selection_strategy,
-            copy_info_dict=copy_info_dict,
-        )
-        self._init_masks(n_masks, mask_prob)
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         # The masks of the real and of the virtual part of the minibatch being sampled (only during sample)
         self._sampled_masks: dict[str, th.Tensor] = {}
-
-    def add(self, *args: Any, **kwargs: Any) -> None:
-        self._store_masks()
-        super().add(*args, **kwargs)
 
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> BootstrappedDictReplayBufferSamples:  # type: ignore[override]
         """
@@ -293,12 +227,9 @@ class BootstrappedNStepReplayBuffer(_MaskStorage, NStepReplayBuffer):
             handle_timeout_termination,
             n_steps=n_steps,
             gamma=gamma,
+            n_masks=n_masks,
+            mask_prob=mask_prob,
         )
-        self._init_masks(n_masks, mask_prob)
-
-    def add(self, *args: Any, **kwargs: Any) -> None:
-        self._store_masks()
-        super().add(*args, **kwargs)
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> BootstrappedReplayBufferSamples:  # type: ignore[override]
         # NStepReplayBuffer._get_samples first draws each sample's env, np.random.randint(0, n_envs, size=batch_inds.shape),

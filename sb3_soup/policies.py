@@ -208,8 +208,7 @@ def check_policy(
             f"policy must be 'MlpPolicy' for {observation_space} observations ('MultiInputPolicy' is for Dict)"
         )
     # the extractor asked for, or the policy's default (FlattenExtractor for MlpPolicy, NatureCNN for CnnPolicy)
-    default_extractor = accepted["features_extractor_class"].default if "features_extractor_class" in accepted else None
-    extractor = policy_kwargs.get("features_extractor_class", default_extractor)
+    extractor = policy_kwargs.get("features_extractor_class") or policy_class.default_features_extractor_class
     normalized_image = (policy_kwargs.get("features_extractor_kwargs") or {}).get("normalized_image", False)
     if not policy_kwargs.get("normalize_images", True) and isinstance(extractor, type):
         # as SB3's BasePolicy: with normalize_images=False, NatureCNN and CombinedExtractor take float images as they are
@@ -292,7 +291,9 @@ class SOUPPolicy(BasePolicy):
     :param confidence: confidence strategy: "none", "fixed", "decayed", "adaptive", "ucb" or a ConfidenceStrategy instance
     :param confidence_kwargs: keyword arguments of the named strategy's class (e.g. ``dict(alpha=0.7)`` for "fixed", see
         :data:`sb3_soup.confidence.STRATEGIES`); None with an instance
-    :param features_extractor_class: Features extractor to use.
+    :param features_extractor_class: Features extractor to use (None: the policy class's
+        ``default_features_extractor_class``: ``FlattenExtractor``, ``NatureCNN`` for CnnPolicy, ``CombinedExtractor``
+        for MultiInputPolicy)
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor.
     :param normalize_images: Whether to normalize images or not, dividing by 255.0 (True by default)
     :param optimizer_class: The optimizer to use (``EnsembleAdam`` keeps per-head state, so training one head
@@ -312,6 +313,7 @@ class SOUPPolicy(BasePolicy):
     critic: EnsembleCritic
     critic_target: EnsembleCritic
     confidence: ConfidenceStrategy
+    default_features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor
 
     def __init__(
         self,
@@ -324,7 +326,7 @@ class SOUPPolicy(BasePolicy):
         n_critic_heads: int = 5,
         confidence: "str | ConfidenceStrategy" = "adaptive",
         confidence_kwargs: dict[str, Any] | None = None,
-        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
+        features_extractor_class: type[BaseFeaturesExtractor] | None = None,
         features_extractor_kwargs: dict[str, Any] | None = None,
         normalize_images: bool = True,
         optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
@@ -335,7 +337,7 @@ class SOUPPolicy(BasePolicy):
         super().__init__(
             observation_space,
             action_space,
-            features_extractor_class,
+            features_extractor_class or self.default_features_extractor_class,
             features_extractor_kwargs,
             optimizer_class=optimizer_class,
             optimizer_kwargs=optimizer_kwargs,
@@ -383,18 +385,8 @@ class SOUPPolicy(BasePolicy):
 
     def make_actor(self) -> EnsembleActor:
         """:return: a new actor with its own features extractor"""
-        extractor = self.make_features_extractor()
-        return EnsembleActor(
-            self.observation_space,
-            self.action_space,  # type: ignore[arg-type]
-            self.n_actor_heads,
-            self.net_arch["pi_body"],
-            self.net_arch["pi_head"],
-            extractor,
-            extractor.features_dim,
-            self.activation_fn,
-            self.normalize_images,
-        ).to(self.device)
+        actor = EnsembleActor(**self._network_arguments("pi", self.n_actor_heads, self.make_features_extractor()))
+        return actor.to(self.device)
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:
         """
@@ -403,18 +395,24 @@ class SOUPPolicy(BasePolicy):
         """
         extractor = self.make_features_extractor() if features_extractor is None else features_extractor
         return EnsembleCritic(
-            self.observation_space,
-            self.action_space,  # type: ignore[arg-type]
-            self.n_critic_heads,
-            self.net_arch["qf_body"],
-            self.net_arch["qf_head"],
-            extractor,
-            extractor.features_dim,
-            self.activation_fn,
-            self.normalize_images,
+            **self._network_arguments("qf", self.n_critic_heads, extractor),
             share_features_extractor=features_extractor is not None,
             action_layer=self.net_arch["qf_action_layer"],
         ).to(self.device)
+
+    def _network_arguments(self, kind: str, n_heads: int, extractor: BaseFeaturesExtractor) -> dict[str, Any]:
+        """The arguments an ensemble network ("pi": the actor, "qf": the critic) shares with the other."""
+        return dict(
+            observation_space=self.observation_space,
+            action_space=self.action_space,
+            n_heads=n_heads,
+            body_arch=self.net_arch[f"{kind}_body"],
+            head_arch=self.net_arch[f"{kind}_head"],
+            features_extractor=extractor,
+            features_dim=extractor.features_dim,
+            activation_fn=self.activation_fn,
+            normalize_images=self.normalize_images,
+        )
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -580,43 +578,7 @@ class CnnPolicy(SOUPPolicy):
     transposed by SB3 (``VecTransposeImage``), one extractor per network unless ``share_features_extractor=True``.
     """
 
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        net_arch: NetArch | None = None,
-        activation_fn: type[nn.Module] = nn.LeakyReLU,
-        n_actor_heads: int = 5,
-        n_critic_heads: int = 5,
-        confidence: "str | ConfidenceStrategy" = "adaptive",
-        confidence_kwargs: dict[str, Any] | None = None,
-        features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN,
-        features_extractor_kwargs: dict[str, Any] | None = None,
-        normalize_images: bool = True,
-        optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
-        optimizer_kwargs: dict[str, Any] | None = None,
-        share_features_extractor: bool = False,
-        n_critics: int = 1,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch,
-            activation_fn,
-            n_actor_heads,
-            n_critic_heads,
-            confidence,
-            confidence_kwargs,
-            features_extractor_class,
-            features_extractor_kwargs,
-            normalize_images,
-            optimizer_class,
-            optimizer_kwargs,
-            share_features_extractor,
-            n_critics,
-        )
+    default_features_extractor_class = NatureCNN
 
 
 class MultiInputPolicy(SOUPPolicy):
@@ -625,40 +587,4 @@ class MultiInputPolicy(SOUPPolicy):
     uses SB3's ``CombinedExtractor`` by default (a ``NatureCNN`` for each image key, flattened other keys).
     """
 
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        lr_schedule: Schedule,
-        net_arch: NetArch | None = None,
-        activation_fn: type[nn.Module] = nn.LeakyReLU,
-        n_actor_heads: int = 5,
-        n_critic_heads: int = 5,
-        confidence: "str | ConfidenceStrategy" = "adaptive",
-        confidence_kwargs: dict[str, Any] | None = None,
-        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
-        features_extractor_kwargs: dict[str, Any] | None = None,
-        normalize_images: bool = True,
-        optimizer_class: type[th.optim.Optimizer] = EnsembleAdam,
-        optimizer_kwargs: dict[str, Any] | None = None,
-        share_features_extractor: bool = False,
-        n_critics: int = 1,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch,
-            activation_fn,
-            n_actor_heads,
-            n_critic_heads,
-            confidence,
-            confidence_kwargs,
-            features_extractor_class,
-            features_extractor_kwargs,
-            normalize_images,
-            optimizer_class,
-            optimizer_kwargs,
-            share_features_extractor,
-            n_critics,
-        )
+    default_features_extractor_class = CombinedExtractor
