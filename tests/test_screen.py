@@ -44,6 +44,24 @@ def test_the_screen_reuses_the_baselines_runs_started_with_run(tmp_path):
     assert hopper["hyperparams"]["learning_starts"] == 10_000 and hopper["algo"] == "td3"
 
 
+def test_a_run_finished_on_one_task_does_not_skip_the_same_seed_on_the_others(tmp_path):
+    """The runs of a screen share model/seed_N names across tasks: a finished one is that task's alone (a finished
+    td3_zoo/seed_0 on one task made run_grid skip td3_zoo/seed_0 on every task)."""
+    from sb3_soup.experiments import parallel
+
+    specs = build_screen(tmp_path, models=["td3_zoo"], seeds=[0], tasks=["Pendulum-v1", "Hopper-v4"])
+    pendulum, hopper = specs
+    assert pendulum.key == hopper.key == "td3_zoo/seed_0" and pendulum.run_id != hopper.run_id
+    for spec in specs:
+        Path(spec.run_dir).mkdir(parents=True)
+        (Path(spec.run_dir) / "spec.json").write_text(spec.to_json())
+    (Path(pendulum.run_dir) / DONE_FILE).write_text(json.dumps({"timesteps": pendulum.timesteps}))
+    results, todo = parallel._skip_finished(specs)
+    assert todo == [hopper] and list(results) == [pendulum.run_id]
+    (Path(hopper.run_dir) / DONE_FILE).write_text(json.dumps({"timesteps": hopper.timesteps}))
+    assert [result["run_dir"] for result in parallel.run_grid(specs, progress=False)] == [pendulum.run_dir, hopper.run_dir]
+
+
 def test_every_model_trains_a_task_with_its_budget_and_warm_up(tmp_path):
     specs = build_screen(tmp_path, models=["soup_defaults", "sac_zoo"], seeds=[0], tasks=["Pendulum-v1", "Walker2d-v4"])
     assert [(spec.env_id, spec.model) for spec in specs] == [

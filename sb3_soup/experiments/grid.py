@@ -168,8 +168,13 @@ class RunSpec:
 
     @property
     def key(self) -> str:
-        """The run's name: ``model/seed_N``."""
+        """The run's name in its experiment folder (one env): ``model/seed_N``."""
         return f"{self.model}/seed_{self.seed}"
+
+    @property
+    def run_id(self) -> str:
+        """The run's name in a grid of several envs (``screen run``): ``env_id/model/seed_N``."""
+        return f"{self.env_id}/{self.key}"
 
     def config(self) -> dict[str, Any]:
         """

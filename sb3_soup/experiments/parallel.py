@@ -317,10 +317,10 @@ def _skip_finished(specs: Sequence[Any]) -> tuple[dict[str, dict[str, Any]], lis
     for spec in specs:
         result = {"key": spec.key, "run_dir": spec.run_dir}
         if runner.is_finished(spec):
-            results[spec.key] = {**result, "status": "skipped", "step": spec.timesteps}
+            results[spec.run_id] = {**result, "status": "skipped", "step": spec.timesteps}
         elif (reason := runner.busy_reason(spec.run_dir)) is not None:
-            results[spec.key] = {**result, "status": "busy", "step": 0, "error": reason}
-    return results, [spec for spec in specs if spec.key not in results]
+            results[spec.run_id] = {**result, "status": "busy", "step": 0, "error": reason}
+    return results, [spec for spec in specs if spec.run_id not in results]
 
 
 def run_grid(
@@ -342,7 +342,7 @@ def run_grid(
         specs = [dataclasses.replace(spec, run_dir=str(Path(spec.run_dir).resolve())) for spec in specs]
     results, todo = _skip_finished(specs)
     if not todo:
-        return [results[spec.key] for spec in specs]
+        return [results[spec.run_id] for spec in specs]
     scheduler: Scheduler
     if ray_address is not None:
         scheduler = RayTasks(workers or len(todo), ray_address, cpus=workers or available_cores())
@@ -363,14 +363,14 @@ def run_grid(
                     signals.received += 1
                     ended = []
                 for spec, result in ended:
-                    results[spec.key] = result
-                    board.finish(spec.key, result)
+                    results[spec.run_id] = result
+                    board.finish(board.name(spec), result)
                 if signals.received and not stopping:
                     stopping = True
                     tqdm.write(scheduler.stop_message, file=sys.stderr)
                     for spec in queue:  # what never started stays to do
-                        results[spec.key] = {"key": spec.key, "run_dir": spec.run_dir, "status": "interrupted", "step": 0}
-                        board.finish(spec.key, results[spec.key])
+                        results[spec.run_id] = {"key": spec.key, "run_dir": spec.run_dir, "status": "interrupted", "step": 0}
+                        board.finish(board.name(spec), results[spec.run_id])
                     queue.clear()
                     if not scheduler.stop():
                         raise KeyboardInterrupt
@@ -380,4 +380,4 @@ def run_grid(
     finally:
         scheduler.close()
         board.close()
-    return [results[spec.key] for spec in specs]
+    return [results[spec.run_id] for spec in specs]

@@ -50,12 +50,14 @@ class ProgressBoard:
         if mode not in ("bars", "lines", "off"):
             raise ValueError(f"mode must be 'bars', 'lines' or 'off', got {mode!r}")
         self.specs = list(specs)
+        # a run's name: model/seed_N, with its env when the runs are on several (screen run)
+        self._several_envs = len({spec.env_id for spec in self.specs}) > 1
         self.mode = mode
         self.stream = stream if stream is not None else sys.stderr
         self.line_interval = line_interval
-        self.steps = {spec.key: _resume_step(spec) for spec in self.specs}
-        self.totals = {spec.key: spec.timesteps for spec in self.specs}
-        self.status = {spec.key: "pending" for spec in self.specs}
+        self.steps = {self.name(spec): _resume_step(spec) for spec in self.specs}
+        self.totals = {self.name(spec): spec.timesteps for spec in self.specs}
+        self.status = {self.name(spec): "pending" for spec in self.specs}
         self.ended: dict[str, dict[str, Any]] = {}
         self.started = self.last_line = time.monotonic()
         self.bars: dict[str, Any] = {}
@@ -67,13 +69,21 @@ class ProgressBoard:
         self.overall = tqdm(
             total=total, initial=sum(self.steps.values()), desc=f"all {len(self.specs)} runs", position=0, **common
         )
-        width = max((len(spec.key) for spec in self.specs), default=10)
+        width = max((len(self.name(spec)) for spec in self.specs), default=10)
         for position, spec in enumerate(self.specs, start=1):
             bar = tqdm(
-                total=spec.timesteps, initial=self.steps[spec.key], desc=spec.key.ljust(width), position=position, **common
+                total=spec.timesteps,
+                initial=self.steps[self.name(spec)],
+                desc=self.name(spec).ljust(width),
+                position=position,
+                **common,
             )
             bar.set_postfix_str("pending")
-            self.bars[spec.key] = bar
+            self.bars[self.name(spec)] = bar
+
+    def name(self, spec: Any) -> str:
+        """:return: the name a run is shown and finished by: ``model/seed_N``, ``env_id/model/seed_N`` on several envs"""
+        return spec.run_id if self._several_envs else spec.key
 
     @property
     def enabled(self) -> bool:
@@ -83,11 +93,11 @@ class ProgressBoard:
     def poll(self) -> None:
         """Read every unfinished run's status file and move the bars (or write a summary line when it is time)."""
         for spec in self.specs:
-            if spec.key in self.ended:
+            if self.name(spec) in self.ended:
                 continue
             status = read_json(Path(spec.run_dir) / STATUS_FILE)
             if status is not None and status.get("status") == "running":
-                self.update(spec.key, int(status.get("step", 0)), "running")
+                self.update(self.name(spec), int(status.get("step", 0)), "running")
         if self.mode == "lines" and time.monotonic() - self.last_line >= self.line_interval:
             self.write_summary()
 
