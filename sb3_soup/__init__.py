@@ -14,6 +14,7 @@ from sb3_soup.confidence import (
     ConfidenceStrategy,
     DecayedConfidence,
     FixedConfidence,
+    LCBConfidence,
     NoConfidence,
     UCBConfidence,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "DecayingNormalActionNoise",
     "EnsembleView",
     "FixedConfidence",
+    "LCBConfidence",
     "MlpPolicy",
     "MultiInputPolicy",
     "NoConfidence",

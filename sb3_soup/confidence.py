@@ -34,6 +34,7 @@ __all__ = [
     "ConfidenceStrategy",
     "DecayedConfidence",
     "FixedConfidence",
+    "LCBConfidence",
     "NoConfidence",
     "UCBConfidence",
     "make_confidence",
@@ -190,6 +191,30 @@ class UCBConfidence(ConfidenceStrategy):
         std = q_matrix.std(dim=1, unbiased=False, keepdim=True)  # (B, 1, Ka)
         bonus = self.ucb_lambda * (q_matrix - mean) / (self.n_critic_heads * std.clamp(min=1e-8))
         return 1.0 / self.n_critic_heads + bonus  # (B, Kc, Ka)
+
+
+class LCBConfidence(ConfidenceStrategy):
+    """
+    Pessimistic selection: each candidate is rated ``mean_i V[i, k] - kappa * std_i V[i, k]``, the mean of the critic
+    heads' values less a multiple of their disagreement, whether exploring or acting greedily. The argmax over K
+    candidates scored by K critics picks the candidate the critics overrate most (the E-action's own optimism, issue 19);
+    a lower confidence bound counters it, as the minimum over critics does in TD3's target.
+
+    As E-Critic weights: ``W[i, k] = 1 / Kc - kappa * (V[i, k] - mean_k) / (Kc * std_k)``, so that
+    ``sum_i W[i, k] V[i, k] = mean_k - kappa * std_k`` (std over the critic heads, ddof 0).
+
+    :param kappa: weight of the penalty, >= 0 (0: the mean of the heads)
+    """
+
+    def __init__(self, kappa: float = 1.0):
+        super().__init__()
+        self.kappa = number(0.0, math.inf, False, True, "LCBConfidence's weight of the penalty")("kappa", kappa)
+
+    def weights(self, obs: PyTorchObs, q_matrix: th.Tensor) -> th.Tensor:
+        mean = q_matrix.mean(dim=1, keepdim=True)  # (B, 1, Ka)
+        std = q_matrix.std(dim=1, unbiased=False, keepdim=True)  # (B, 1, Ka)
+        penalty = self.kappa * (q_matrix - mean) / (self.n_critic_heads * std.clamp(min=1e-8))
+        return 1.0 / self.n_critic_heads - penalty  # (B, Kc, Ka)
 
 
 class ConfidenceNetwork(BaseModel):
@@ -416,6 +441,7 @@ STRATEGIES: dict[str, type[ConfidenceStrategy]] = {
     "decayed": DecayedConfidence,
     "adaptive": AdaptiveConfidence,
     "ucb": UCBConfidence,
+    "lcb": LCBConfidence,
 }
 """The strategies SOUP's ``confidence`` names; ``confidence_kwargs`` are the named class's own arguments."""
 CONFIDENCE_STRATEGIES = tuple(STRATEGIES)
@@ -461,7 +487,7 @@ def make_confidence(
     Build a strategy from its name and its own keyword arguments (the class's defaults for the others), or check a
     user's strategy object.
 
-    :param confidence: "none", "fixed", "decayed", "adaptive", "ucb" (see :data:`STRATEGIES`), or a
+    :param confidence: "none", "fixed", "decayed", "adaptive", "ucb", "lcb" (see :data:`STRATEGIES`), or a
         :class:`ConfidenceStrategy` instance
     :param confidence_kwargs: the named strategy's arguments, e.g. ``dict(alpha=0.7)`` for "fixed" (None: its defaults);
         none with an instance, which has its own

@@ -288,7 +288,8 @@ class SOUPPolicy(BasePolicy):
     :param activation_fn: Activation function (LeakyReLU, as in the paper)
     :param n_actor_heads: number of actor heads
     :param n_critic_heads: number of critic heads
-    :param confidence: confidence strategy: "none", "fixed", "decayed", "adaptive", "ucb" or a ConfidenceStrategy instance
+    :param confidence: confidence strategy: "none", "fixed", "decayed", "adaptive", "ucb", "lcb" or a ConfidenceStrategy
+        instance
     :param confidence_kwargs: keyword arguments of the named strategy's class (e.g. ``dict(alpha=0.7)`` for "fixed", see
         :data:`sb3_soup.confidence.STRATEGIES`); None with an instance
     :param features_extractor_class: Features extractor to use (None: the policy class's

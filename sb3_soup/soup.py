@@ -190,7 +190,8 @@ class SOUP(OffPolicyAlgorithm):
     :param preset: one of the paper's models (:data:`sb3_soup.PRESETS`): "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg",
         "soup"; it sets the head counts and the confidence
     :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive" (default, or
-        the preset's), "ucb" (optimistic selection) or a :class:`sb3_soup.ConfidenceStrategy` instance
+        the preset's), "ucb" (optimistic selection), "lcb" (pessimistic selection) or a :class:`sb3_soup.ConfidenceStrategy`
+        instance
     :param confidence_kwargs: the arguments of the strategy ``confidence`` names, by its class's own names (None: its
         defaults), e.g. ``alpha`` of :class:`sb3_soup.FixedConfidence`, ``lr`` of :class:`sb3_soup.AdaptiveConfidence`
     :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off

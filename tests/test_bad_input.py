@@ -120,7 +120,7 @@ INVALID = [
     (dict(preset="dbddpg", confidence_kwargs=dict(lr=1e-3)), "confidence_kwargs", re.escape("NoConfidence accepts []")),
     (dict(confidence_kwargs=[0.5]), "confidence_kwargs", re.escape("None or a dict of the strategy's arguments")),
     (dict(check_finite=1), "check_finite", "True or False"),
-    (dict(confidence="sometimes"), "confidence", re.escape("one of ('none', 'fixed', 'decayed', 'adaptive', 'ucb')")),
+    (dict(confidence="sometimes"), "confidence", re.escape("one of ('none', 'fixed', 'decayed', 'adaptive', 'ucb', 'lcb')")),
     (dict(confidence="ucb", confidence_kwargs=dict(ucb_lambda=-1.0)), "ucb_lambda", re.escape("a float in [0, inf)")),
     (
         dict(confidence_kwargs=dict(temperature_mode="scaled")),

@@ -146,6 +146,27 @@ def test_ucb_explores_towards_the_disputed_candidate_and_acts_greedily_on_the_me
     assert model.policy.select(th.zeros(4, 3), explore=True).actions.shape == (4, 1)
 
 
+def test_lcb_rates_candidates_by_mean_minus_kappa_std_exploring_or_not():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, confidence="lcb", confidence_kwargs=dict(kappa=2.0), seed=0)
+    strategy = model.policy.confidence
+    q_matrix = th.as_tensor(np.random.default_rng(0).normal(size=(8, 3, 3)), dtype=th.float32)  # (B, Kc, Ka)
+    obs = th.zeros(8, 3)
+    mean, std = q_matrix.mean(dim=1), q_matrix.std(dim=1, unbiased=False)
+    for weights in (strategy.weights(obs, q_matrix), strategy.exploration_weights(obs, q_matrix)):
+        th.testing.assert_close((weights * q_matrix).sum(dim=1), mean - 2.0 * std)
+
+
+def test_lcb_prefers_the_candidate_the_critics_agree_on():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=2, confidence="lcb", seed=0)
+    # candidate 0: both heads agree on 1.0; candidate 1: mean 1.25 (the plain argmax's pick), spread 0.75
+    q_matrix = th.tensor([[[1.0, 2.0], [1.0, 0.5]]])
+    rated = (model.policy.confidence.weights(th.zeros(1, 3), q_matrix) * q_matrix).sum(dim=1)
+    assert q_matrix.mean(dim=1).argmax(dim=1).item() == 1 and rated.argmax(dim=1).item() == 0
+    model.learn(30)  # acts with it
+    with pytest.raises(ValueError, match=r"kappa must be a float in \[0, inf\) \(LCBConfidence's weight of the penalty\)"):
+        SOUP("MlpPolicy", "Pendulum-v1", confidence="lcb", confidence_kwargs=dict(kappa=-1.0))
+
+
 def test_adaptive_confidence_logs_how_decided_its_selection_policy_is():
     strategy = _strategy(n_heads=3)
     rng = np.random.default_rng(0)
