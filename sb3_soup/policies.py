@@ -24,6 +24,8 @@ DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_b
 DEFAULT_ACTION_LAYER = 1
 SOUP_NET_ARCH_KEYS = (*DEFAULT_NET_ARCH, "qf_action_layer")
 NetArch = list[int] | dict[str, Any]
+# The policy's arguments that SOUP sets from its own (head counts, confidence strategy), besides policy_kwargs
+SET_BY_SOUP = ("n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs")
 
 
 class ObservationSpaceError(ValueError, AssertionError):
@@ -198,9 +200,8 @@ def check_policy(
         raise ValueError(f"policy must be one of {aliases} or a sb3_soup.SOUPPolicy subclass, got {policy_class!r}")
     accepted = inspect.signature(policy_class.__init__).parameters
     if not any(parameter.kind == inspect.Parameter.VAR_KEYWORD for parameter in accepted.values()):
-        set_by_soup = {"n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs"}
-        names = sorted(set(accepted) - {"self", "observation_space", "action_space", "lr_schedule"} - set_by_soup)
-        unknown = sorted(set(policy_kwargs) - set(names) - set_by_soup)
+        names = sorted(set(accepted) - {"self", "observation_space", "action_space", "lr_schedule"} - set(SET_BY_SOUP))
+        unknown = sorted(set(policy_kwargs) - set(names) - set(SET_BY_SOUP))
         if unknown:
             raise ValueError(f"policy_kwargs has unknown keys {unknown}; {policy_class.__name__} accepts {names}")
     if issubclass(policy_class, MultiInputPolicy) and not isinstance(observation_space, spaces.Dict):

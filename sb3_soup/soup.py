@@ -34,7 +34,16 @@ from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
 from sb3_soup.noise import check_action_noise, default_action_noise, noise_std
 from sb3_soup.optim import EnsembleAdam
-from sb3_soup.policies import CnnPolicy, MlpPolicy, MultiInputPolicy, Selection, SOUPPolicy, TrainedHeads, check_policy
+from sb3_soup.policies import (
+    SET_BY_SOUP,
+    CnnPolicy,
+    MlpPolicy,
+    MultiInputPolicy,
+    Selection,
+    SOUPPolicy,
+    TrainedHeads,
+    check_policy,
+)
 from sb3_soup.presets import resolve_model
 from sb3_soup.validation import (
     Rule,
@@ -55,8 +64,6 @@ __version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip(
 SAVE_FORMAT_VERSION = 3
 """Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
 parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
-# SOUP's arguments of its policy, passed by SOUP besides policy_kwargs (see SOUP._policy_arguments)
-_POLICY_ARGUMENTS = ("n_actor_heads", "n_critic_heads", "confidence", "confidence_kwargs")
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
 
 # Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
@@ -87,7 +94,7 @@ ARGUMENT_RULES: dict[str, Rule] = {
         {"n_masks", "mask_prob"}, "replay buffer", "SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
     ),
     "policy_kwargs": keyword_dict(
-        set(_POLICY_ARGUMENTS), "policy", "set them as SOUP arguments (n_heads, preset, confidence, confidence_kwargs...)"
+        set(SET_BY_SOUP), "policy", "set them as SOUP arguments (n_heads, preset, confidence, confidence_kwargs...)"
     ),
     # SB3's arguments are SB3's to check, but for those SB3 would fail on without naming them
     "buffer_size": any_integer("replay buffer size"),
@@ -332,12 +339,7 @@ class SOUP(OffPolicyAlgorithm):
 
     def _policy_arguments(self) -> dict[str, Any]:
         """SOUP's own arguments of its policy (head counts, confidence strategy), passed besides ``policy_kwargs``."""
-        return dict(
-            n_actor_heads=self.n_actor_heads,
-            n_critic_heads=self.n_critic_heads,
-            confidence=self.confidence,
-            confidence_kwargs=self.confidence_kwargs,
-        )
+        return {name: getattr(self, name) for name in SET_BY_SOUP}
 
     def _setup_model(self) -> None:
         user_kwargs = self.policy_kwargs
