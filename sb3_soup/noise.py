@@ -100,6 +100,11 @@ def noise_std(action_noise: ActionNoise | None) -> float | None:
     return None
 
 
+def is_decaying_normal(hyperparams: dict[str, Any]) -> bool:
+    """:return: whether RL-Zoo hyper-parameters ask for a decaying noise (``noise_type: 'decaying_normal'``)"""
+    return str(hyperparams.get("noise_type") or "").strip() == DECAYING_NORMAL
+
+
 def zoo_action_noise(hyperparams: dict[str, Any], action_shape: tuple[int, ...]) -> dict[str, Any]:
     """
     The RL Zoo's noise keys for a decaying noise: ``noise_type: 'decaying_normal'`` with ``noise_std`` (its initial
@@ -110,7 +115,7 @@ def zoo_action_noise(hyperparams: dict[str, Any], action_shape: tuple[int, ...])
     :param action_shape: the action space's shape
     :return: the hyper-parameters, with ``action_noise`` in place of those keys (a copy; the same when there are none)
     """
-    if str(hyperparams.get("noise_type") or "").strip() != DECAYING_NORMAL:
+    if not is_decaying_normal(hyperparams):
         return hyperparams
     params = {key: value for key, value in hyperparams.items() if key not in ZOO_NOISE_KEYS}
     params["action_noise"] = DecayingNormalActionNoise(

@@ -89,7 +89,7 @@ def use_decaying_noise(exp_manager: ModuleType) -> None:
 
     :param exp_manager: the ``rl_zoo3.exp_manager`` module
     """
-    from sb3_soup.noise import DECAYING_NORMAL, zoo_action_noise
+    from sb3_soup.noise import DECAYING_NORMAL, is_decaying_normal, zoo_action_noise
 
     manager_class = exp_manager.ExperimentManager
     original = manager_class._preprocess_action_noise
@@ -98,7 +98,7 @@ def use_decaying_noise(exp_manager: ModuleType) -> None:
 
     @functools.wraps(original)
     def _preprocess_action_noise(self: Any, hyperparams: dict[str, Any], saved_hyperparams: dict[str, Any], env: Any) -> Any:
-        if str(hyperparams.get("noise_type") or "").strip() == DECAYING_NORMAL:
+        if is_decaying_normal(hyperparams):
             decay, floor = hyperparams.get("noise_decay", 1.0), hyperparams.get("noise_std_min", 0.0)
             print(f"Applying {DECAYING_NORMAL} noise with std {hyperparams['noise_std']}, decay {decay} and floor {floor}")
             hyperparams = zoo_action_noise(hyperparams, env.action_space.shape)

@@ -253,7 +253,9 @@ def load_hyperparams(env_id: str, path: str | os.PathLike | None = None, source:
         return fallback_hyperparams(env_id, source)
     entry = dict(entries[env_id])
     # SOUP's decaying noise is SOUP's argument (the runner builds it): its noise_type stays
-    keep = {"noise_type"} if entry.get("noise_type") == "decaying_normal" else set()
+    from sb3_soup.noise import is_decaying_normal
+
+    keep = {"noise_type"} if is_decaying_normal(entry) else set()
     return {key: value for key, value in entry.items() if key not in ZOO_ONLY_KEYS - keep}
 
 
