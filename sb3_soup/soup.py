@@ -1,8 +1,5 @@
 """SOUP: Self-Adaptive Double Bootstrapped DDPG, as a Stable-Baselines3 off-policy algorithm."""
 
-import io
-import math
-import pathlib
 import warnings
 from typing import Any, ClassVar, TypeVar
 
@@ -11,7 +8,6 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import update_learning_rate
@@ -22,17 +18,17 @@ try:  # SB3 >= 2.6
 except ImportError:  # pragma: no cover
     from stable_baselines3.common.utils import get_schedule_fn as _as_schedule  # type: ignore[assignment]
 
+from sb3_soup.arguments import ARGUMENT_RULES, check_arguments
 from sb3_soup.buffers import (
     BootstrappedDictReplayBufferSamples,
     BootstrappedReplayBufferSamples,
     bootstrapped_buffer_class,
-    load_bootstrapped_buffer,
 )
-from sb3_soup.checkpoint import read_model_data
 from sb3_soup.confidence import ConfidenceStep, ConfidenceStrategy, check_update_logs
 from sb3_soup.diagnostics import EnsembleStats, check_loss, check_selection
+from sb3_soup.loading import SAVE_FORMAT_VERSION, CheckedLoading, __version__
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, soft_update
-from sb3_soup.noise import check_action_noise, default_action_noise, noise_std
+from sb3_soup.noise import default_action_noise, noise_std
 from sb3_soup.optim import EnsembleAdam
 from sb3_soup.policies import (
     SET_BY_SOUP,
@@ -45,103 +41,10 @@ from sb3_soup.policies import (
     check_policy,
 )
 from sb3_soup.presets import resolve_model
-from sb3_soup.validation import (
-    Rule,
-    any_integer,
-    boolean,
-    check_finite_env_output,
-    choice,
-    integer,
-    keyword_dict,
-    learning_rate,
-    number,
-    optional,
-    seed,
-)
+from sb3_soup.validation import check_finite_env_output
 
 SelfSOUP = TypeVar("SelfSOUP", bound="SOUP")
-__version__ = pathlib.Path(__file__).with_name("version.txt").read_text().strip()
-SAVE_FORMAT_VERSION = 3
-"""Format of the model zips this version writes and reads: bump it when a change makes older files load wrongly (other
-parameter names or shapes, a renamed attribute); ``SOUP.load`` refuses the other formats, naming both versions."""
 Samples = BootstrappedReplayBufferSamples | BootstrappedDictReplayBufferSamples
-
-# Fixed by a saved model: SOUP.load refuses to change them (the networks and the strategy are built from them)
-_STRUCTURAL_ARGUMENTS = (
-    "n_heads",
-    "n_actor_heads",
-    "n_critic_heads",
-    "preset",
-    "confidence",
-    "confidence_kwargs",
-    "policy",
-)
-TRAIN_HEADS = ("active", "all", "all_critics")
-TARGET_Q = ("own", "min_pair")
-
-
-ARGUMENT_RULES: dict[str, Rule] = {
-    # SOUP's own arguments (n_heads, the head counts, preset and mask_prob: sb3_soup.presets.resolve_model; confidence
-    # and confidence_kwargs: the policy and the strategy, which take them)
-    "critic_learning_rate": optional(learning_rate, "the same as learning_rate"),
-    "train_heads": choice(TRAIN_HEADS, "which head pairs each gradient step trains"),
-    "target_q": choice(TARGET_Q, "which target critic heads each head bootstraps from"),
-    "policy_delay": integer(1, "critic updates per actor and target update"),
-    "target_policy_noise": number(0.0, math.inf, False, True, "std of the target action's smoothing noise, 0: none"),
-    "target_noise_clip": number(0.0, math.inf, False, True, "limit of the target action's smoothing noise"),
-    "check_finite": boolean("raise at the first NaN/inf observation, reward, Q value or loss"),
-    "replay_buffer_kwargs": keyword_dict(
-        {"n_masks", "mask_prob"}, "replay buffer", "SOUP sets n_masks to its number of head pairs; pass mask_prob to SOUP"
-    ),
-    "policy_kwargs": keyword_dict(
-        set(SET_BY_SOUP), "policy", "set them as SOUP arguments (n_heads, preset, confidence, confidence_kwargs...)"
-    ),
-    # SB3's arguments are SB3's to check, but for those SB3 would fail on without naming them
-    "buffer_size": any_integer("replay buffer size"),
-    "n_steps": any_integer("steps of the n-step returns, 1 or less: one-step TD targets"),
-    "seed": seed,
-    "action_noise": check_action_noise,
-}
-"""SOUP's rules for its arguments (``SOUP.__init__`` and ``SOUP.load`` check them with :func:`check_arguments`)."""
-
-
-def check_arguments(**kwargs: Any) -> dict[str, Any]:
-    """
-    :param kwargs: SOUP's arguments (those without a rule in :data:`ARGUMENT_RULES` pass through unchecked)
-    :return: the arguments, each checked by its rule (numbers as Python ``int``/``float``/``bool``)
-    """
-    return {name: (ARGUMENT_RULES[name](name, value) if name in ARGUMENT_RULES else value) for name, value in kwargs.items()}
-
-
-def check_save_format(data: dict[str, Any], path: Any) -> None:
-    """
-    Refuse a file that is not a SOUP model in this version's save format (:data:`SAVE_FORMAT_VERSION`), saying which
-    versions and what to do: the version check of sb3-soup's model files.
-
-    :param data: the file's ``data`` (:func:`sb3_soup.checkpoint.read_model_data`)
-    :param path: the file, for the message
-    """
-    saved_format = data.get("_sb3_soup_format", 0)  # 0: sb3-soup 0.1.0a0 before the format was stored
-    if saved_format == 0 and not {"n_actor_heads", "n_critic_heads"} <= data.keys():
-        policy = data.get("policy_class")
-        module = policy.get("__module__", "?") if isinstance(policy, dict) else "?"
-        raise ValueError(
-            f"{path} was not saved by SOUP (its policy class comes from {module}): load it with the algorithm that saved "
-            "it (e.g. stable_baselines3.TD3.load)"
-        )
-    if saved_format == SAVE_FORMAT_VERSION:
-        return
-    saved_version = data.get("_sb3_soup_version", "0.1.0a0")
-    if isinstance(saved_format, int) and saved_format > SAVE_FORMAT_VERSION:
-        advice = "upgrade sb3-soup (pip install -U sb3-soup) to load it"
-    elif saved_version == __version__:  # a development version, before its save format changed
-        advice = "it was saved during this version's development, before its format changed: train a new model"
-    else:
-        advice = f"load it with sb3-soup {saved_version} (pip install sb3-soup=={saved_version}), or train a new model"
-    raise ValueError(
-        f"{path} was saved by sb3-soup {saved_version} in save format {saved_format!r}; this sb3-soup {__version__} reads "
-        f"save format {SAVE_FORMAT_VERSION} only: {advice}"
-    )
 
 
 def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
@@ -156,71 +59,61 @@ def masked_mean(values: th.Tensor, masks: th.Tensor) -> th.Tensor:
     return ((masks * values).sum(dim=1) / masks.sum(dim=1).clamp(min=1)).squeeze(-1)
 
 
-class SOUP(OffPolicyAlgorithm):
+class SOUP(CheckedLoading):
     """
     Self-Adaptive Double Bootstrapped DDPG (SOUP), Zheng et al., IJCAI 2018: https://www.ijcai.org/proceedings/2018/0444.pdf
 
     DDPG with a bootstrapped actor and critic (shared bodies, K heads): every actor head proposes an action, every
     critic head scores every proposal, a confidence strategy weights the scores and the best-rated proposal is executed
     (eq. 7). Each episode trains one randomly drawn (actor head, critic head) pair on the transitions its bootstrap mask
-    lets it see (Algorithm 1), or more pairs (``train_heads``). The details the paper leaves open are fixed as in the
-    project's design spec; the paper's equations mapped to this code: ``docs/equations.md``.
+    lets it see (Algorithm 1), or more pairs (``train_heads``). The paper's equations mapped to this code:
+    ``docs/equations.md``.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate for Adam, of the actor and (unless ``critic_learning_rate`` is given) the critic,
-        as in SB3; it can be a function of the current progress remaining (from 1 to 0)
-    :param critic_learning_rate: the critic's own learning rate (float or schedule; the paper: 3e-4); None (default):
-        the critic follows ``learning_rate``, as every optimizer of SB3's TD3 and DDPG does
+    :param learning_rate: learning rate for Adam, of the actor and (unless ``critic_learning_rate`` is given) the
+        critic; it can be a function of the current progress remaining (from 1 to 0)
+    :param critic_learning_rate: the critic's own learning rate (float or schedule; the paper: 3e-4); None: the critic
+        follows ``learning_rate``, as every optimizer of SB3's TD3 does
     :param buffer_size: size of the replay buffer
-    :param learning_starts: how many steps of the model to collect transitions for before learning starts
-        (uniformly random actions, without noise, until then)
+    :param learning_starts: how many steps to collect transitions for (uniformly random actions) before learning starts
     :param batch_size: Minibatch size for each gradient update
     :param tau: the soft update coefficient ("Polyak update", between 0 and 1)
     :param gamma: the discount factor
-    :param train_freq: Update the model every ``train_freq`` steps. Alternatively pass a tuple of frequency and unit
-        like ``(5, "step")`` or ``(2, "episode")``.
+    :param train_freq: Update the model every ``train_freq`` steps, or a tuple like ``(5, "step")``, ``(2, "episode")``
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
-    :param action_noise: an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] scaled action space, as TD3 adds it;
-        None (SOUP's rule, unlike TD3's): a constant N(0, 0.1), the RL Zoo's for TD3 and DDPG. A decaying std (the
-        paper's): :class:`sb3_soup.DecayingNormalActionNoise`
-    :param replay_buffer_class: None (chosen as SB3 does), one of SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
-        ``HerReplayBuffer``, ``NStepReplayBuffer``, of which SOUP uses the bootstrapped versions (they store the masks,
-        :mod:`sb3_soup.buffers`), or a subclass of those
+    :param action_noise: an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] action scale; None (unlike TD3):
+        N(0, 0.1); the paper's decaying std: :class:`sb3_soup.DecayingNormalActionNoise`
+    :param replay_buffer_class: None (chosen as SB3 does) or SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
+        ``HerReplayBuffer``, ``NStepReplayBuffer``, of which SOUP uses the bootstrapped versions (:mod:`sb3_soup.buffers`)
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer, as in SB3
-    :param n_steps: n-step returns (SB3's, with the bootstrapped ``NStepReplayBuffer``) when ``replay_buffer_class`` is
-        None; otherwise ``replay_buffer_kwargs={"n_steps": ..., "gamma": ...}``
+    :param n_steps: n-step returns (SB3's ``NStepReplayBuffer``, bootstrapped) when ``replay_buffer_class`` is None
     :param n_heads: number of bootstrapped heads K
     :param n_actor_heads: actor heads (default: ``n_heads``, or the preset's)
     :param n_critic_heads: critic heads (default: ``n_heads``, or the preset's)
     :param preset: one of the paper's models (:data:`sb3_soup.PRESETS`): "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg",
         "soup"; it sets the head counts and the confidence
-    :param confidence: confidence strategy of the E-Critic layer: "none", "fixed", "decayed", "adaptive" (default, or
-        the preset's), "ucb" (optimistic selection), "lcb" (pessimistic selection) or a :class:`sb3_soup.ConfidenceStrategy`
-        instance
-    :param confidence_kwargs: the arguments of the strategy ``confidence`` names, by its class's own names (None: its
-        defaults), e.g. ``alpha`` of :class:`sb3_soup.FixedConfidence`, ``lr`` of :class:`sb3_soup.AdaptiveConfidence`
-    :param mask_prob: probability that a head sees a transition (Bernoulli masks), in (0, 1]; 1 turns bootstrap off
-        (default 0.5, 1.0 for the "ddpg" preset)
-    :param train_heads: "active": the episode's active head pair (the paper); "all": every head pair, each with its own
-        masked loss; "all_critics": every critic head, the active pair's actor head
+    :param confidence: the E-Critic's strategy: "none", "fixed", "decayed", "adaptive" (default, or the preset's), "ucb",
+        "lcb" or a :class:`sb3_soup.ConfidenceStrategy`
+    :param confidence_kwargs: the strategy's arguments by its class's names (None: its defaults), e.g. ``alpha`` of
+        :class:`sb3_soup.FixedConfidence`
+    :param mask_prob: probability that a head sees a transition, in (0, 1]; 1 turns bootstrap off (default 0.5)
+    :param train_heads: "active": the episode's head pair (the paper); "all": every head pair, each with its own masked
+        loss; "all_critics": every critic head, the active pair's actor head
     :param target_q: the next state's value each critic head bootstraps from (eq. 4): "own", its own target head's (the
         paper); "min_pair", the smaller of its own and one random other's (clipped double Q across the ensemble)
     :param policy_delay: the actor and the targets are updated once every ``policy_delay`` critic updates (TD3's)
     :param target_policy_noise: std of the noise added to the target actions (TD3's target policy smoothing; 0: none)
     :param target_noise_clip: limit of the absolute value of that noise
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
-    :param stats_window_size: Window size for the rollout logging, specifying the number of episodes to average
-        the reported success rate, mean episode length, and mean reward over
+    :param stats_window_size: Window size for the rollout logging, in episodes
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation (``net_arch`` in SOUP's or SB3's
-        forms, ``activation_fn``...; see :class:`SOUPPolicy`), kept as passed (SB3's ``load`` compares them)
-    :param verbose: Verbosity level: 0 for no output, 1 for info messages (such as device or wrappers used), 2 for
-        debug messages
+        forms, ``activation_fn``...; see :class:`SOUPPolicy`)
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
     :param seed: Seed for the pseudo random generators
-    :param device: Device (cpu, cuda, ...) on which the code should be run.
-        Setting it to auto, the code will be run on the GPU if possible.
+    :param device: Device (cpu, cuda, ...) on which the code should be run ("auto": the GPU if possible)
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
@@ -358,8 +251,7 @@ class SOUP(OffPolicyAlgorithm):
         self.policy_kwargs = policy_kwargs
         try:
             with warnings.catch_warnings():
-                # SB3 warns that n_steps is ignored whenever the class is set, as it is now: bootstrapped_buffer_class
-                # warned when it was ignored indeed
+                # SB3 warns n_steps is ignored whenever the class is set; bootstrapped_buffer_class warned if it was
                 warnings.filterwarnings("ignore", message=r"`n_steps=\d+` is ignored", category=UserWarning)
                 super()._setup_model()
         finally:
@@ -392,8 +284,7 @@ class SOUP(OffPolicyAlgorithm):
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
-        """E-action of the ensemble for every env (eq. 7), plus exploration noise; random actions (without noise) during
-        the warm-up."""
+        """The E-action for every env (eq. 7) plus exploration noise; random actions, without noise, in the warm-up."""
         if self.num_timesteps < learning_starts:
             return super()._sample_action(learning_starts, None, n_envs)
         assert self._last_obs is not None, "self._last_obs was not set"
@@ -428,11 +319,10 @@ class SOUP(OffPolicyAlgorithm):
         # eq. 8's data: the strategy is told what happened (the selection, if the ensemble made one, and the rewards)
         observations, selection = self._last_selection or (None, None)
         rewards = th.as_tensor(np.asarray(reward, dtype=np.float32), device=self.device)
-        q_matrix = None if selection is None else selection.q_matrix
-        chosen = None if selection is None or q_matrix is None else selection.chosen
-        self.policy.confidence.observe(
-            ConfidenceStep(observations if q_matrix is not None else None, q_matrix, chosen, rewards)
-        )
+        if selection is None or selection.q_matrix is None:  # a random warm-up action, or no critic ensemble to weigh
+            self.policy.confidence.observe(ConfidenceStep(None, None, None, rewards))
+        else:
+            self.policy.confidence.observe(ConfidenceStep(observations, selection.q_matrix, selection.chosen, rewards))
         self._last_selection = None
         self._draw_active_pairs(np.flatnonzero(dones))
 
@@ -596,74 +486,7 @@ class SOUP(OffPolicyAlgorithm):
             progress_bar=progress_bar,
         )
 
-    # ----- saving: SB3's save and load, with SOUP's checks -----------------------------------------------------
-
-    @classmethod
-    def load(  # type: ignore[override]
-        cls: type[SelfSOUP],
-        path: str | pathlib.Path | io.BufferedIOBase,
-        env: GymEnv | None = None,
-        device: th.device | str = "auto",
-        custom_objects: dict[str, Any] | None = None,
-        print_system_info: bool = False,
-        force_reset: bool = True,
-        **kwargs: Any,
-    ) -> SelfSOUP:
-        """
-        SB3's ``load`` (see there for the parameters), once the file is checked to be a complete SOUP model in this
-        version's save format (:func:`check_save_format`). ``kwargs`` may change settings (e.g. ``learning_starts``),
-        not those that shape the networks or the strategy (head counts, preset, confidence): the file's.
-        """
-        data = read_model_data(path)
-        check_save_format(data, path)
-        fixed = sorted(set(kwargs) & set(_STRUCTURAL_ARGUMENTS))
-        if fixed:
-            saved = ", ".join(f"{key}={data.get(key)!r}" for key in fixed if ":serialized:" not in str(data.get(key)))
-            raise ValueError(
-                f"{fixed} cannot be changed when loading: the saved model was built with {saved or 'other objects'}; "
-                "create a new SOUP to use other values"
-            )
-        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **check_arguments(**kwargs))
-        model._sb3_soup_version = __version__  # from now on this version's model
-        return model
-
-    def set_parameters(
-        self, load_path_or_dict: str | dict[str, Any], exact_match: bool = True, device: th.device | str = "auto"
-    ) -> None:
-        """SB3's ``set_parameters``, saying what to do when the saved networks have other shapes (``SOUP.load``)."""
-        try:
-            super().set_parameters(load_path_or_dict, exact_match, device)
-        except RuntimeError as error:
-            mismatches = [line.strip() for line in str(error).splitlines() if "size mismatch" in line]
-            if not mismatches:
-                raise
-            raise ValueError(
-                f"the saved parameters do not fit this model's networks (other head counts or net_arch?): {mismatches[0]} "
-                f"({len(mismatches)} mismatches). SOUP.load builds a model as it was saved"
-            ) from error
-
-    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
-        """
-        SB3's ``load_replay_buffer``, once the file is checked to fit this model (bootstrap masks for each head pair,
-        as many envs; :func:`sb3_soup.buffers.load_bootstrapped_buffer`): the model's buffer is only replaced then.
-
-        :param path: Path to the pickled replay buffer
-        :param truncate_last_traj: When using ``HerReplayBuffer``: if ``True``, we assume that the last trajectory in the
-            replay buffer was finished (and truncate it); if ``False``, we assume that we continue the same trajectory
-            (same episode), as SB3
-        """
-        buffer = load_bootstrapped_buffer(path, self.policy.n_pairs, self.n_envs, self.verbose)
-        if isinstance(buffer, HerReplayBuffer):
-            if self.env is None:
-                raise ValueError(
-                    f"the replay buffer in {path} is a HerReplayBuffer, which needs the model's env (to compute the "
-                    "rewards of relabelled goals): set it first (SOUP.load(path, env=...) or model.set_env(env))"
-                )
-            buffer.set_env(self.env)
-            if truncate_last_traj:
-                buffer.truncate_last_trajectory()
-        buffer.device = self.device
-        self.replay_buffer = buffer
+    # ----- saving: SB3's two hooks (loading: sb3_soup.loading.CheckedLoading, with SOUP's checks) ---------------
 
     def _excluded_save_params(self) -> list[str]:
         # Exclude aliases, and the selection being taken (None between two steps, where models are saved)

@@ -17,7 +17,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_soup import SOUP, __version__
-from sb3_soup.soup import SAVE_FORMAT_VERSION
+from sb3_soup.loading import SAVE_FORMAT_VERSION
 
 TINY = dict(net_arch=dict(pi_body=[8], pi_head=[8], qf_body=[8, 8], qf_head=[8]))
 SMALL = dict(learning_starts=20, batch_size=16, buffer_size=300, policy_kwargs=TINY)
