@@ -98,11 +98,11 @@ class HeadStack(nn.Module):
         return x
 
 
-def mlp(sizes: list[int], activation_fn: type[nn.Module]) -> nn.Sequential:
-    """Linear layers of the given sizes, each followed by the activation."""
+def mlp(sizes: list[int], activation_fn: type[nn.Module], layer_norm: bool = False) -> nn.Sequential:
+    """Linear layers of the given sizes, each followed by the activation (with ``layer_norm``: LayerNorm, then it)."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):
-        layers += [nn.Linear(sizes[i], sizes[i + 1]), activation_fn()]
+        layers += [nn.Linear(sizes[i], sizes[i + 1]), *([nn.LayerNorm(sizes[i + 1])] if layer_norm else []), activation_fn()]
     return nn.Sequential(*layers)
 
 
@@ -261,6 +261,7 @@ class EnsembleCritic(EnsembleModel):
         reads its features without gradient, and neither trains it nor soft-updates it (the actor does)
     :param action_layer: the body layer whose input the action joins: 1, the second (the paper's DDPG critic), or 0,
         the first (SB3's critic)
+    :param layer_norm: a LayerNorm after each linear layer of the body, before its activation (the heads have none)
     """
 
     obs_layer: nn.Linear | None
@@ -279,6 +280,7 @@ class EnsembleCritic(EnsembleModel):
         normalize_images: bool = True,
         share_features_extractor: bool = False,
         action_layer: int = 1,
+        layer_norm: bool = False,
     ):
         super().__init__(
             observation_space, action_space, n_heads, body_arch, head_arch, features_extractor, features_dim, activation_fn,
@@ -296,22 +298,28 @@ class EnsembleCritic(EnsembleModel):
                 "with net_arch['qf_action_layer']=0 the action joins at the input (SB3's critic) and any body goes"
             )
         self.action_layer = action_layer
+        self.layer_norm = layer_norm
         action_dim = get_action_dim(action_space)
         if action_layer == 1:
             self.obs_layer = nn.Linear(features_dim, body_arch[0])  # (F -> H1)
             self.joint_layer = nn.Linear(body_arch[0] + action_dim, body_arch[1])  # ([H1, A] -> H2)
-            self.body = mlp(body_arch[1:], activation_fn)  # remaining body layers (empty for [H1, H2])
+            self.body = mlp(body_arch[1:], activation_fn, layer_norm)  # remaining body layers (empty for [H1, H2])
         else:
             self.obs_layer = None
             # ([F, A] -> H1), or no body: the heads take [F, A]
             self.joint_layer = nn.Linear(features_dim + action_dim, body_arch[0]) if body_arch else None
-            self.body = mlp(body_arch, activation_fn)  # remaining body layers
+            self.body = mlp(body_arch, activation_fn, layer_norm)  # remaining body layers
+        # the LayerNorms of the observation and the joint layers (identities without layer_norm: no parameters)
+        self.obs_norm = nn.LayerNorm(body_arch[0]) if layer_norm and self.obs_layer is not None else nn.Identity()
+        self.joint_norm = nn.LayerNorm(self.joint_layer.out_features) if layer_norm and self.joint_layer else nn.Identity()
         self.activation = activation_fn()
         self.heads = HeadStack(body_arch[-1] if body_arch else features_dim + action_dim, head_arch, 1, n_heads, activation_fn)
 
     def _get_constructor_parameters(self) -> dict:
         data = super()._get_constructor_parameters()
-        data.update(share_features_extractor=self.share_features_extractor, action_layer=self.action_layer)
+        data.update(
+            share_features_extractor=self.share_features_extractor, action_layer=self.action_layer, layer_norm=self.layer_norm
+        )
         return data
 
     def body_features(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
@@ -324,7 +332,7 @@ class EnsembleCritic(EnsembleModel):
                 features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
         else:
             features = self.extract_features(obs, self.features_extractor)  # type: ignore[arg-type]
-        h1 = features if self.obs_layer is None else self.activation(self.obs_layer(features))  # (B, H1) or (B, F)
+        h1 = features if self.obs_layer is None else self.activation(self.obs_norm(self.obs_layer(features)))  # (B, H1)/(B, F)
         if self.joint_layer is None:  # no body: the heads take [features; action]
             if actions.dim() == 3:
                 h1 = h1.expand(actions.shape[0], -1, -1)  # (N, B, F)
@@ -339,7 +347,7 @@ class EnsembleCritic(EnsembleModel):
             # (H2, A), reads it transposed: 4x faster than the strided slice of the joint weight
             w_act_t = w_act.T.contiguous()  # (A, H2)
             z = th.baddbmm(z_obs.unsqueeze(0), actions, w_act_t.expand(actions.shape[0], -1, -1))  # (N, B, H2)
-        return self.body(self.activation(z))
+        return self.body(self.activation(self.joint_norm(z)))
 
     def forward(self, obs: PyTorchObs, actions: th.Tensor, head: HeadIndex = None) -> th.Tensor:  # type: ignore[override]
         """

@@ -16,7 +16,7 @@ from torch import nn
 from sb3_soup.confidence import ConfidenceStrategy, check_confidence, make_confidence
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, HeadIndex
 from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
-from sb3_soup.validation import check_head_counts, integer
+from sb3_soup.validation import boolean, check_head_counts, integer
 
 # The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
 DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
@@ -308,6 +308,8 @@ class SOUPPolicy(BasePolicy):
     :param n_critics: SB3's number of critic networks (TD3Policy's argument): SOUP's critics are its ``n_critic_heads``,
         each head one critic as SB3's ``n_critics=1`` builds; 1 is accepted, more warn and are ignored (TD3's clipped
         double Q across the heads: SOUP's ``target_q="min_pair"``)
+    :param layer_norm: a LayerNorm after each linear layer of the critic's shared body, before its activation (as
+        SBX's ``layer_norm``, for the critics only); False (the default): none
     """
 
     actor: EnsembleActor
@@ -335,6 +337,7 @@ class SOUPPolicy(BasePolicy):
         optimizer_kwargs: dict[str, Any] | None = None,
         share_features_extractor: bool = False,
         n_critics: int = 1,
+        layer_norm: bool = False,
     ):
         super().__init__(
             observation_space,
@@ -360,6 +363,7 @@ class SOUPPolicy(BasePolicy):
         self.confidence_spec = check_confidence(confidence)
         self.confidence_kwargs = confidence_kwargs  # checked by make_confidence, with the strategy's own arguments
         self.share_features_extractor = share_features_extractor
+        self.layer_norm = boolean("LayerNorms in the critic's body")("layer_norm", layer_norm)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -400,6 +404,7 @@ class SOUPPolicy(BasePolicy):
             **self._network_arguments("qf", self.n_critic_heads, extractor),
             share_features_extractor=features_extractor is not None,
             action_layer=self.net_arch["qf_action_layer"],
+            layer_norm=self.layer_norm,
         ).to(self.device)
 
     def _network_arguments(self, kind: str, n_heads: int, extractor: BaseFeaturesExtractor) -> dict[str, Any]:
@@ -432,6 +437,7 @@ class SOUPPolicy(BasePolicy):
                 features_extractor_class=self.features_extractor_class,
                 features_extractor_kwargs=self.features_extractor_kwargs,
                 share_features_extractor=self.share_features_extractor,
+                layer_norm=self.layer_norm,
             )
         )
         return data
