@@ -23,7 +23,7 @@ from sb3_soup.validation import (
 )
 
 TRAIN_HEADS = ("active", "all", "all_critics")
-TARGET_Q = ("own", "min_pair")
+TARGET_Q = ("own", "min_pair", "redq")
 
 ARGUMENT_RULES: dict[str, Rule] = {
     "critic_learning_rate": optional(learning_rate, "the same as learning_rate"),

@@ -84,8 +84,7 @@ class SOUP(CheckedLoading):
     :param gradient_steps: How many gradient steps to do after each rollout (-1: as many as env steps)
     :param action_noise: an SB3 ``ActionNoise`` added to the E-action in the [-1, 1] action scale; None (unlike TD3):
         N(0, 0.1); the paper's decaying std: :class:`sb3_soup.DecayingNormalActionNoise`
-    :param replay_buffer_class: None (chosen as SB3 does) or SB3's ``ReplayBuffer``, ``DictReplayBuffer``,
-        ``HerReplayBuffer``, ``NStepReplayBuffer``, of which SOUP uses the bootstrapped versions (:mod:`sb3_soup.buffers`)
+    :param replay_buffer_class: None (as SB3) or an SB3 buffer class, SOUP using its bootstrapped one (:mod:`sb3_soup.buffers`)
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer, as in SB3
     :param n_steps: n-step returns (SB3's ``NStepReplayBuffer``, bootstrapped) when ``replay_buffer_class`` is None
@@ -102,7 +101,8 @@ class SOUP(CheckedLoading):
     :param train_heads: "active": the episode's head pair (the paper); "all": every head pair, each with its own masked
         loss; "all_critics": every critic head, the active pair's actor head
     :param target_q: the next state's value each critic head bootstraps from (eq. 4): "own", its own target head's (the
-        paper); "min_pair", the smaller of its own and one random other's (clipped double Q across the ensemble)
+        paper); "min_pair", the smaller of its own and one random other's (clipped double Q across the ensemble);
+        "redq", the smaller of two random target heads', the same two for every head (REDQ's target, M = 2)
     :param policy_delay: the actor and the targets are updated once every ``policy_delay`` critic updates (TD3's)
     :param target_policy_noise: std of the noise added to the target actions (TD3's target policy smoothing; 0: none)
     :param target_noise_clip: limit of the absolute value of that noise
@@ -209,9 +209,8 @@ class SOUP(CheckedLoading):
         self.target_policy_noise: float = args["target_policy_noise"]
         self.target_noise_clip: float = args["target_noise_clip"]
         self.check_finite: bool = args["check_finite"]
-        # Saved with the model: which sb3-soup wrote it, in which save format (checked by SOUP.load)
-        self._sb3_soup_format = SAVE_FORMAT_VERSION
-        self._sb3_soup_version = __version__
+        self._sb3_soup_format = SAVE_FORMAT_VERSION  # saved with the model, checked by SOUP.load
+        self._sb3_soup_version = __version__  # the sb3-soup that wrote it
 
         # Per env: the head pair trained during its current episode (Algorithm 1, drawn at each episode start)
         self._active_pairs: np.ndarray | None = None
@@ -225,9 +224,8 @@ class SOUP(CheckedLoading):
 
     def _get_policy_from_name(self, policy_name: str) -> type[BasePolicy]:
         if policy_name not in self.policy_aliases:
-            raise ValueError(
-                f"policy must be one of {sorted(self.policy_aliases)} or a sb3_soup.SOUPPolicy subclass, got {policy_name!r}"
-            )
+            aliases = sorted(self.policy_aliases)
+            raise ValueError(f"policy must be one of {aliases} or a sb3_soup.SOUPPolicy subclass, got {policy_name!r}")
         return self.policy_aliases[policy_name]
 
     def _policy_arguments(self) -> dict[str, Any]:
@@ -356,11 +354,15 @@ class SOUP(CheckedLoading):
                     noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
                     next_actions = (next_actions + noise).clamp(-1.0, 1.0)
                 next_features = self.critic_target.body_features(data.next_observations, next_actions)  # (H or 1, B, F)
-                next_q = self.critic_target.heads(next_features, critic_heads.head_arg)  # (H, B, 1)
-                if self.target_q == "min_pair" and self.n_critic_heads > 1:  # TD3's clipped double Q across heads (REDQ)
-                    own = th.as_tensor(critic_heads.per_pair, device=self.device)  # (H,)
-                    others = (own + th.randint(1, self.n_critic_heads, own.shape, device=self.device)) % self.n_critic_heads
-                    next_q = th.minimum(next_q, self.critic_target.heads(next_features, others))  # (H, B, 1)
+                if self.target_q == "redq" and self.n_critic_heads > 1:  # REDQ's: the min over 2 random heads, for every pair
+                    drawn = th.randperm(self.n_critic_heads, device=self.device)[:2]  # (2,)
+                    next_q = th.minimum(*[self.critic_target.heads(next_features, j.repeat(len(critic_pairs))) for j in drawn])
+                else:
+                    next_q = self.critic_target.heads(next_features, critic_heads.head_arg)  # (H, B, 1)
+                    if self.target_q == "min_pair" and self.n_critic_heads > 1:  # TD3's clipped double Q across heads
+                        own = th.as_tensor(critic_heads.per_pair, device=self.device)  # (H,)
+                        others = (own + th.randint_like(own, 1, self.n_critic_heads)) % self.n_critic_heads  # (H,)
+                        next_q = th.minimum(next_q, self.critic_target.heads(next_features, others))  # (H, B, 1)
                 target_q = data.rewards + (1 - data.dones) * discounts * next_q  # (H, B, 1)
 
             # Eq. 3, each critic head's squared error over the transitions its bootstrap mask keeps
@@ -402,10 +404,8 @@ class SOUP(CheckedLoading):
 
     def _training_pairs(self, masks: th.Tensor) -> tuple[list[int], list[int]]:
         """
-        The training scheme: which head pairs this minibatch trains, as (critic pairs, actor pairs). "active": the pair
-        drawn for the episode (Algorithm 1; with n_envs > 1 the gradient steps take the envs' pairs in turn); "all": every
-        pair; "all_critics": every critic head, the active pair's actor head. A pair whose mask keeps none of the
-        minibatch is left out.
+        The head pairs this minibatch trains (``train_heads``), as (critic pairs, actor pairs); with n_envs > 1, "active"
+        takes the envs' pairs in turn (one per gradient step). A pair whose mask keeps none of the minibatch is left out.
 
         :param masks: ``(B, P)`` bootstrap masks of the minibatch
         """

@@ -133,7 +133,7 @@ INVALID = [
     (dict(preset="dbddpg", confidence="adaptive"), "preset='dbddpg'", "sets confidence='none'"),
     (dict(train_heads="some"), "train_heads", re.escape("one of ('active', 'all', 'all_critics')")),
     (dict(train_heads=None), "train_heads", re.escape("one of ('active', 'all', 'all_critics')")),
-    (dict(target_q="max"), "target_q", re.escape("one of ('own', 'min_pair')")),
+    (dict(target_q="max"), "target_q", re.escape("one of ('own', 'min_pair', 'redq')")),
     (dict(policy_delay=0), "policy_delay", "integer >= 1"),
     (dict(target_policy_noise=-0.1), "target_policy_noise", re.escape("a float in [0, inf)")),
     (dict(target_noise_clip=float("nan")), "target_noise_clip", re.escape("a float in [0, inf)")),

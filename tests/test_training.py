@@ -232,12 +232,55 @@ def test_min_pair_target_is_the_smaller_of_the_own_and_another_target_head(pair)
     data = _batch(3)
     candidates = _critic_losses(_model(), data, pair)
     others = [loss for i, loss in enumerate(candidates) if i != pair]
-    for draw in range(4):  # the other head is drawn at random, one for the whole minibatch
+    drawn = set()
+    for draw in range(8):  # the other head is drawn at random per pair and minibatch
+        model = _model(target_q="min_pair")  # seeded: the draw's seed comes after
         th.manual_seed(draw)
-        (loss,), _ = _step(_model(target_q="min_pair"), data, pair=pair)
+        (loss,), _ = _step(model, data, pair=pair)
+        drawn |= {i for i, other in enumerate(others) if loss == pytest.approx(other, rel=1e-5)}
         assert any(loss == pytest.approx(other, rel=1e-5) for other in others), (loss, candidates)
+    assert drawn == {0, 1}  # either other head
     # with one critic head there is nothing to take the minimum with: the own target
     (one_head,), _ = _step(_model(n_heads=1, preset="ddpg", target_q="min_pair"), _batch(1))
+    (own,), _ = _step(_model(n_heads=1, preset="ddpg"), _batch(1))
+    assert one_head == own
+
+
+def _redq_losses(model: SOUP, data: BootstrappedReplayBufferSamples, pair: int) -> dict[tuple[int, int], float]:
+    """Eqs. 3-4 by hand for head pair ``pair``: the critic loss with the target ``r + gamma (1 - done) min(Q'_i, Q'_j)(s',
+    mu'_pair(s'))`` for every two target heads i < j."""
+    with th.no_grad():
+        next_actions = model.actor_target(data.next_observations, pair)  # (B, A)
+        next_q = [model.critic_target(data.next_observations, next_actions, i) for i in range(model.n_critic_heads)]
+        current_q = model.critic(data.observations, data.actions, pair)  # (B, 1)
+        losses = {}
+        for i in range(model.n_critic_heads):
+            for j in range(i + 1, model.n_critic_heads):
+                target_q = data.rewards + model.gamma * (1 - data.dones) * th.minimum(next_q[i], next_q[j])
+                losses[(i, j)] = float(((target_q - current_q) ** 2).mean())
+    return losses
+
+
+def test_redq_target_is_the_smaller_of_two_random_target_heads_the_same_for_every_pair():
+    data = _batch(3)
+    drawn = set()
+    for draw in range(8):  # two heads drawn at random per minibatch, the pair's own among them or not
+        model = _model(target_q="redq")  # seeded: the draw's seed comes after
+        th.manual_seed(draw)
+        (loss,), _ = _step(model, data, pair=0)
+        matches = [
+            heads for heads, expected in _redq_losses(_model(), data, 0).items() if loss == pytest.approx(expected, rel=1e-5)
+        ]
+        assert len(matches) == 1, (loss, matches)
+        drawn |= set(matches)
+    assert (1, 2) in drawn and len(drawn) > 1  # unlike min_pair, the own head need not be one of them
+    # train_heads="all": every pair's target from the same two heads (the logged loss is the pairs' mean)
+    (loss,), _ = _step(_model(target_q="redq", train_heads="all"), data)
+    per_pair = [_redq_losses(_model(), data, pair) for pair in range(3)]
+    means = {heads: np.mean([losses[heads] for losses in per_pair]) for heads in per_pair[0]}
+    assert sum(loss == pytest.approx(mean, rel=1e-5) for mean in means.values()) == 1, (loss, means)
+    # with one critic head: the own target
+    (one_head,), _ = _step(_model(n_heads=1, preset="ddpg", target_q="redq"), _batch(1))
     (own,), _ = _step(_model(n_heads=1, preset="ddpg"), _batch(1))
     assert one_head == own
 
