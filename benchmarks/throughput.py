@@ -4,7 +4,8 @@ Throughput benchmark of SOUP against SB3's DDPG and TD3 (issue 5: K heads must n
 Every (configuration, repeat) runs in a fresh subprocess with one torch thread; the configurations are interleaved
 (repeat 1 of every configuration, then repeat 2, ...) so that a change of machine load hits them all alike; the table
 reports medians over the repeats and each row's ratio to DDPG measured in the same run (the median over the repeats
-of the ratio to DDPG's run in the same repeat).
+of the ratio to DDPG's run in the same repeat), and the same ratio to SB3's default TD3 (``x TD3``: net_arch
+[400, 300], the RL Zoo's and the screening suite's TD3; the ``td3`` row is TD3 at DDPG's [256, 256], like for like).
 
 Measured per configuration (Hopper-v4, ``train_freq=1``, ``gradient_steps=1``):
 
@@ -20,9 +21,13 @@ Usage::
     python benchmarks/throughput.py --out throughput.json            # full table (about 20 min on 2 shared cores)
     python benchmarks/throughput.py --quick --out quick.json         # a few rows, short windows (a smoke test)
     python benchmarks/throughput.py --device cuda --out gpu.json     # the same table on a GPU
+    # a screen candidate's training scheme at K=5 against DDPG and TD3 (rows "soup K=5 NAME b...")
+    python benchmarks/throughput.py --only td3 crit-redq --out scheme.json \
+        --scheme crit-redq:train_heads=all_critics,target_q=redq,target_policy_noise=0.2,policy_delay=2
 """
 
 import argparse
+import ast
 import json
 import os
 import platform
@@ -36,6 +41,8 @@ ENV_ID = "Hopper-v4"
 # Hopper-v4: 11-dimensional observations, 3-dimensional actions
 OBS_DIM, ACT_DIM = 11, 3
 DDPG_ARCH = [256, 256]
+# SB3's TD3 default and the RL Zoo's (the screening suite's TD3): the "td3-sb3" rows, the reference of "x TD3"
+TD3_SB3_ARCH = [400, 300]
 # The paper's sizes (sb3_soup.policies.DEFAULT_NET_ARCH)
 SOUP_ARCH = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
 
@@ -61,10 +68,14 @@ def soup_defaults() -> dict[str, Any]:
 
 
 def config_name(config: dict[str, Any]) -> str:
+    if config["algo"] == "td3-sb3":
+        return f"td3 {TD3_SB3_ARCH} (SB3's) b{config['batch_size']}"
     if config["algo"] != "soup":
         return f"{config['algo']} b{config['batch_size']}"
     if config.get("defaults"):
         name = f"soup K={config['n_heads']} defaults b{config['batch_size']}"
+    elif config.get("scheme"):
+        name = f"soup K={config['n_heads']} {config['scheme_name']} b{config['batch_size']}"
     else:
         name = f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
     return name + (" (before)" if config.get("before") else "")
@@ -74,19 +85,40 @@ def scheme(config: dict[str, Any]) -> dict[str, Any]:
     """A SOUP row's training scheme and confidence."""
     if config.get("defaults"):
         return soup_defaults()
+    if config.get("scheme"):  # a named scheme (--scheme): SOUP's defaults with these settings
+        return {**soup_defaults(), **config["scheme"]}
     return {**PAPER_SCHEME, "train_heads": config["train_heads"], "confidence": config["confidence"]}
 
 
-def make_configs(quick: bool, batch_sizes: list[int]) -> list[dict[str, Any]]:
+def parse_scheme(text: str) -> tuple[str, dict[str, Any]]:
+    """``NAME:key=value,key=value`` (values as Python literals, else strings) -> (NAME, settings)."""
+    name, _, settings = text.partition(":")
+    if not name or not settings:
+        raise argparse.ArgumentTypeError(f"--scheme takes NAME:key=value,key=value..., got {text!r}")
+    scheme_settings = {}
+    for item in settings.split(","):
+        key, _, value = item.partition("=")
+        try:
+            scheme_settings[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            scheme_settings[key.strip()] = value.strip()
+    return name, scheme_settings
+
+
+def make_configs(
+    quick: bool, batch_sizes: list[int], schemes: list[tuple[str, dict[str, Any]]] | None = None
+) -> list[dict[str, Any]]:
     """
     The table's rows: DDPG, TD3, then SOUP for K in (1, 5, 10), active/all heads with the paper's update, confidence
-    none/adaptive, and SOUP's defaults at K=5.
+    none/adaptive, SOUP's defaults at K=5, and each named scheme (SOUP's defaults with its settings) at K=5.
     """
     configs: list[dict[str, Any]] = []
     for batch_size in batch_sizes:
-        baselines = ["ddpg"] if quick else ["ddpg", "td3"]
+        baselines = ["ddpg"] if quick else ["ddpg", "td3", "td3-sb3"]
         configs += [dict(algo=algo, batch_size=batch_size) for algo in baselines]
         configs.append(dict(algo="soup", batch_size=batch_size, n_heads=5, defaults=True))
+        for scheme_name, settings in schemes or []:
+            configs.append(dict(algo="soup", batch_size=batch_size, n_heads=5, scheme_name=scheme_name, scheme=settings))
         heads = (10,) if quick else (1, 5, 10)
         for n_heads in heads:
             for train_heads in ("active", "all"):
@@ -122,9 +154,10 @@ def train_flops(config: dict[str, Any]) -> float:
     too (3). Optimizer and soft updates (proportional to the parameter count, not the batch) are left out.
     """
     batch = config["batch_size"]
-    if config["algo"] in ("ddpg", "td3"):
-        actor = _mlp_macs([OBS_DIM, *DDPG_ARCH, ACT_DIM])
-        critic = _mlp_macs([OBS_DIM + ACT_DIM, *DDPG_ARCH, 1])
+    if config["algo"] in ("ddpg", "td3", "td3-sb3"):
+        arch = TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH
+        actor = _mlp_macs([OBS_DIM, *arch, ACT_DIM])
+        critic = _mlp_macs([OBS_DIM + ACT_DIM, *arch, 1])
         n_critics = 1 if config["algo"] == "ddpg" else 2
         # target: actor + critics forward; critic loss: critics forward+backward
         macs = actor + n_critics * critic + 3 * n_critics * critic
@@ -143,7 +176,7 @@ def train_flops(config: dict[str, Any]) -> float:
     c_head = _mlp_macs([SOUP_ARCH["qf_body"][-1], *SOUP_ARCH["qf_head"], 1])
     n = 1 if update["train_heads"] == "active" else k  # critic heads (pairs) trained by the step
     m = k if update["train_heads"] == "all" else 1  # actor heads trained when the actor is
-    target_heads = 2 if update["target_q"] == "min_pair" and k > 1 else 1  # target critic heads per pair
+    target_heads = 2 if update["target_q"] in ("min_pair", "redq") and k > 1 else 1  # target critic heads per pair
     target = a_body + n * a_head + c_obs + n * (c_act + target_heads * c_head)
     critic = 3 * (c_obs + c_act + n * c_head)  # one action per sample, n heads on the same features
     actor = 3 * (a_body + m * a_head) + 2 * (c_obs + m * (c_act + c_head))  # critic: gradient to its input only
@@ -156,8 +189,8 @@ def predict_flops(config: dict[str, Any]) -> float:
     candidate, every critic head scores every candidate (K x K head evaluations, the E-Critic's matrix ``V``), plus the
     confidence network (adaptive).
     """
-    if config["algo"] in ("ddpg", "td3"):
-        return 2.0 * _mlp_macs([OBS_DIM, *DDPG_ARCH, ACT_DIM])
+    if config["algo"] in ("ddpg", "td3", "td3-sb3"):
+        return 2.0 * _mlp_macs([OBS_DIM, *(TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH), ACT_DIM])
     k = config["n_heads"]
     actor = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]]) + k * _mlp_macs(
         [SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM]
@@ -188,9 +221,10 @@ def _make_model(config: dict[str, Any], device: str, buffer_size: int, learning_
         device=device,
         verbose=0,
     )
-    if config["algo"] in ("ddpg", "td3"):
+    if config["algo"] in ("ddpg", "td3", "td3-sb3"):
         algo = DDPG if config["algo"] == "ddpg" else TD3
-        return algo("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=list(DDPG_ARCH)), **common)
+        arch = TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH
+        return algo("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=list(arch)), **common)
     return SOUP(
         "MlpPolicy", ENV_ID, n_heads=config["n_heads"], policy_kwargs=dict(net_arch=SOUP_ARCH), **scheme(config), **common
     )
@@ -338,6 +372,10 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
             row[ratio_key + "_per_repeat"] = ratios
             row[ratio_key + "_of_medians"] = row[key] / ddpg[key]
         row["flop_ratio"] = row["train_gflop"] / ddpg["train_gflop"]  # > 1: more arithmetic than DDPG per update
+        td3 = next((r for r in rows if r["config"]["algo"] == "td3-sb3" and r["config"]["batch_size"] == batch_size), None)
+        if td3 is not None:  # the same pairing against SB3's default TD3's run of each repeat
+            ratios = [run["steps_per_s"] / base["steps_per_s"] for run, base in zip(row["repeats"], td3["repeats"])]
+            row["speed_ratio_td3"] = float(statistics.median(ratios))
         row["predict_flop_ratio"] = row["predict_mflop"] / ddpg["predict_mflop"]
     memory_rows = []
     for name, runs in memory.items():
@@ -360,7 +398,7 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     header = (
-        f"{'configuration':<42} {'steps/s':>8} {'x DDPG':>7} {'FLOP x':>7} {'1/FLOPx':>7} "
+        f"{'configuration':<42} {'steps/s':>8} {'x DDPG':>7} {'x TD3':>6} {'FLOP x':>7} {'1/FLOPx':>7} "
         f"{'pred1 ms':>9} {'x DDPG':>7} {'pred8 ms':>9} {'x DDPG':>7} {'pred FLOP x':>11}"
     )
     print(header)
@@ -369,7 +407,8 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         if "steps_per_s" not in row:
             continue
         print(
-            f"{row['name']:<42} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} {row['flop_ratio']:>7.2f} "
+            f"{row['name']:<42} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} "
+            f"{row.get('speed_ratio_td3', float('nan')):>6.2f} {row['flop_ratio']:>7.2f} "
             f"{1 / row['flop_ratio']:>7.2f} {row['predict_1_ms']:>9.3f} {row['predict_1_ratio']:>7.2f} "
             f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f} {row['predict_flop_ratio']:>11.1f}"
         )
@@ -406,6 +445,13 @@ def main() -> None:
         default=["K=10 active adaptive", "K=10 all adaptive"],
         help="the SOUP configurations measured with --before (name substrings)",
     )
+    parser.add_argument(
+        "--scheme",
+        type=parse_scheme,
+        action="append",
+        default=[],
+        help="a named training scheme, NAME:key=value,... (SOUP's defaults with these settings), measured at K=5; repeatable",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -421,7 +467,7 @@ def main() -> None:
     args.learning_starts = args.learning_starts or (256 if args.quick else 1024)
     memory_buffer = args.memory_buffer if args.memory_buffer is not None else (20_000 if args.quick else 1_000_000)
     batch_sizes = [args.batch_sizes[0]] if args.quick else args.batch_sizes
-    configs = make_configs(args.quick, batch_sizes)
+    configs = make_configs(args.quick, batch_sizes, args.scheme)
     if args.only:
         configs = [c for c in configs if c["algo"] == "ddpg" or any(s in config_name(c) for s in args.only)]
     if args.before:

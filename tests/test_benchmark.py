@@ -36,7 +36,7 @@ def test_flop_counts():
     # predict: the E-Critic scores K x K (candidate, critic head) pairs
     assert bench.predict_flops(soup) / bench.predict_flops(ddpg) > 40
     names = [bench.config_name(c) for c in bench.make_configs(quick=False, batch_sizes=[1024, 256])]
-    assert len(names) == len(set(names)) == 2 * (2 + 1 + 3 * 2 * 2)
+    assert len(names) == len(set(names)) == 2 * (3 + 1 + 3 * 2 * 2)  # DDPG, TD3 twice, the defaults, the grid
     # the scheme's savings: a delayed actor, all critics with one actor head; a second target head costs a little
     all_pairs = dict(soup, n_heads=5, batch_size=256)
     cheaper = dict(all_pairs, defaults=True)
@@ -68,3 +68,22 @@ def test_quick_mode_writes_the_table(tmp_path):
     assert len(memory_rows) == 2
     soup_memory = next(row for row in memory_rows if row["name"].startswith("soup"))
     assert soup_memory["mask_dtype"] == "bool" and soup_memory["peak_rss_mb"] > 0
+
+
+def test_a_named_scheme_is_a_row_of_soups_defaults_with_its_settings():
+    bench = load_benchmark()
+    name, settings = bench.parse_scheme("crit-redq:train_heads=all_critics,target_q=redq,target_policy_noise=0.2")
+    assert (name, settings) == ("crit-redq", dict(train_heads="all_critics", target_q="redq", target_policy_noise=0.2))
+    configs = bench.make_configs(quick=True, batch_sizes=[256], schemes=[(name, settings)])
+    row = next(c for c in configs if c.get("scheme"))
+    assert bench.config_name(row) == "soup K=5 crit-redq b256"
+    assert bench.scheme(row) == {**bench.soup_defaults(), **settings}
+    # REDQ's target reads two target heads per pair, as min_pair does
+    min_pair = dict(row, scheme=dict(settings, target_q="min_pair"))
+    assert (
+        bench.train_flops(row)
+        == bench.train_flops(min_pair)
+        > bench.train_flops(dict(row, scheme=dict(settings, target_q="own")))
+    )
+    with pytest.raises(Exception, match="NAME:key=value"):
+        bench.parse_scheme("no-settings")
