@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_soup.experiments import logs, screen
+from sb3_soup.experiments import grid, logs, screen
 from sb3_soup.experiments.__main__ import main, make_parser, run_specs, screen_specs
 from sb3_soup.experiments.grid import SCREEN_BASELINES, SCREEN_TASKS, build_grid, build_screen, parse_overrides, soup_defaults
 from sb3_soup.experiments.report import write_grid
@@ -282,3 +282,64 @@ def test_screen_command_runs_resumably_and_reports(tmp_path, capsys):
     assert "- `td3_zoo` on Pendulum-v1: seed 0: interrupted at step 100/20000" in printed
     assert not (tmp_path / "report" / screen.RANDOM_SCORES_FILE).exists()  # read from the root's cache
     assert main(["screen", "tasks"]) == 0 and "| Hopper-v4 | 50000 | 10000 |" in capsys.readouterr().out
+
+
+def test_candidates_run_as_named_soup_models_the_same_runs_as_name_and_hyperparams(tmp_path):
+    """`screen run --candidates FILE` runs each candidate as `--name NAME --hyperparams SETTINGS` would, in order."""
+    candidates = tmp_path / "candidates.yml"
+    candidates.write_text(
+        "crit_redq: {train_heads: all_critics, target_q: redq, policy_delay: 2}\n"
+        'layer_norm: {policy_kwargs: "dict(layer_norm=True)"}\n'
+    )
+    root = str(tmp_path / "screen")
+    common = ["--root", root, "--seeds", "2", "--tasks", "Pendulum-v1,Hopper-v4"]
+    specs = screen_specs(make_parser().parse_args(["screen", "run", "--candidates", str(candidates), *common]))
+    assert [spec.model for spec in specs] == ["crit_redq"] * 4 + ["layer_norm"] * 4  # one candidate after the other
+    by_hand = make_parser().parse_args(
+        ["screen", "run", "--name", "crit_redq", "--hyperparams", "train_heads=all_critics", "target_q=redq",
+         "policy_delay=2", *common]
+    )  # fmt: skip
+    assert [spec.config() for spec in specs[:4]] == [spec.config() for spec in screen_specs(by_hand)]
+    assert specs[4].hyperparams["policy_kwargs"] == "dict(layer_norm=True)"
+    assert specs[4].hyperparams["train_heads"] == soup_defaults()["train_heads"]  # the defaults, but for its settings
+    # --only chooses, --hyperparams applies to every candidate
+    only = make_parser().parse_args(
+        ["screen", "run", "--candidates", str(candidates), "--only", "layer_norm", "--hyperparams", "batch_size=128", *common]
+    )
+    assert {(spec.model, spec.hyperparams["batch_size"]) for spec in screen_specs(only)} == {("layer_norm", 128)}
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("- a\n- b\n", "must map each candidate's name to a mapping of its settings"),
+        ("td3_zoo: {n_heads: 3}\n", "candidate names are folder names"),
+        ("'a/b': {n_heads: 3}\n", "candidate names are folder names"),
+    ],
+)
+def test_a_bad_candidates_file_is_refused(tmp_path, text, message):
+    path = tmp_path / "candidates.yml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        grid.read_candidates(path)
+    path.write_text("k3: {n_heads: 3}\n")
+    with pytest.raises(ValueError, match=r"has no candidates \['k5'\]; it has \['k3'\]"):
+        grid.read_candidates(path, ["k5"])
+    for flags in (["--models", "td3_zoo"], ["--name", "x"]):
+        args = make_parser().parse_args(["screen", "run", "--root", str(tmp_path), "--candidates", str(path), *flags])
+        with pytest.raises(ValueError, match="drop --models and --name"):
+            screen_specs(args)
+    with pytest.raises(ValueError, match="--only chooses among --candidates"):
+        screen_specs(make_parser().parse_args(["screen", "run", "--root", str(tmp_path), "--only", "k3"]))
+
+
+def test_the_committed_candidates_are_all_valid_soup_settings():
+    from sb3_soup import SOUP
+    from sb3_soup.experiments.runner import resolve_policy_kwargs
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "results" / "screen" / "candidates.yml"
+    candidates = grid.read_candidates(path)
+    assert len(candidates) >= 10
+    for settings in candidates.values():
+        kwargs = dict(settings, policy_kwargs=resolve_policy_kwargs(settings.get("policy_kwargs")))
+        SOUP("MlpPolicy", "Pendulum-v1", **kwargs)  # built as the runner builds it: no error

@@ -36,6 +36,7 @@ from sb3_soup.experiments.grid import (
     build_screen,
     parse_overrides,
     parse_seeds,
+    read_candidates,
 )
 
 
@@ -173,6 +174,12 @@ def _add_screen_parser(commands: Any) -> None:
         help="store the runs as this model: a candidate, one named setting of one variant (default soup_defaults) given "
         "by --hyperparams",
     )
+    run.add_argument(
+        "--candidates",
+        help="a YAML file of SOUP's candidates (name: settings, e.g. docs/results/screen/candidates.yml): each runs as "
+        "--name NAME with its settings, one candidate after the other, instead of --models/--name",
+    )
+    run.add_argument("--only", type=_csv, help="with --candidates: these candidates only, comma-separated, in this order")
     run.add_argument(
         "--seeds", type=parse_seeds, default=list(range(SCREEN_SEEDS)), help=f"a count or a list (default: {SCREEN_SEEDS})"
     )
@@ -341,7 +348,21 @@ def screen_specs(args: argparse.Namespace) -> list[Any]:
     :param args: parsed ``screen run`` arguments
     :return: the runs they ask for
     """
-    return build_screen(args.root, models=args.models, seeds=args.seeds, tasks=args.tasks, **_run_options(args))
+    options = _run_options(args)
+    if not args.candidates:
+        if args.only:
+            raise ValueError("--only chooses among --candidates: pass a candidates file")
+        return build_screen(args.root, models=args.models, seeds=args.seeds, tasks=args.tasks, **options)
+    if args.models or args.name:
+        raise ValueError("--candidates runs each candidate as a named SOUP model: drop --models and --name")
+    specs = []
+    for name, settings in read_candidates(args.candidates, args.only).items():
+        # the candidate's settings for SOUP's defaults, then --hyperparams' (for every candidate)
+        overrides = {**options["overrides"], "*": {**settings, **options["overrides"].get("*", {})}}
+        specs += build_screen(
+            args.root, seeds=args.seeds, tasks=args.tasks, **dict(options, overrides=overrides, name=name)
+        )  # fmt: skip
+    return specs
 
 
 def screen_command(args: argparse.Namespace) -> int:

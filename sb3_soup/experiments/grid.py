@@ -294,6 +294,32 @@ def parse_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
     return overrides
 
 
+def read_candidates(path: str | os.PathLike, only: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
+    """
+    SOUP's candidates for a screen, from a YAML file mapping each candidate's name (its runs' folder) to its settings
+    (SOUP's defaults with these; the RL Zoo's forms, e.g. ``policy_kwargs: "dict(layer_norm=True)"``), in the file's order.
+
+    :param path: the file (e.g. ``docs/results/screen/candidates.yml``)
+    :param only: these candidates only, in this order
+    :return: ``{name: settings}``
+    """
+    import yaml
+
+    data = yaml.safe_load(Path(path).read_text())
+    if not isinstance(data, dict) or not all(isinstance(value, dict) for value in data.values()):
+        raise ValueError(f"{path} must map each candidate's name to a mapping of its settings, got {data!r}")
+    for name in data:
+        if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_.+-]+", name) or name in VARIANTS:
+            raise ValueError(
+                f"{path}: candidate names are folder names (letters, digits, _.+-) other than the variants' "
+                f"({', '.join(VARIANTS)}), got {name!r}"
+            )
+    unknown = [name for name in only or [] if name not in data]
+    if unknown:
+        raise ValueError(f"{path} has no candidates {unknown}; it has {list(data)}")
+    return {name: dict(data[name]) for name in (only or data)}
+
+
 def parse_seeds(text: str) -> list[int]:
     """
     :param text: a count (``"3"`` -> seeds 0, 1, 2) or a comma-separated list (``"1,5"``)
