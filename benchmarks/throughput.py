@@ -21,9 +21,12 @@ Usage::
     python benchmarks/throughput.py --out throughput.json            # full table (about 20 min on 2 shared cores)
     python benchmarks/throughput.py --quick --out quick.json         # a few rows, short windows (a smoke test)
     python benchmarks/throughput.py --device cuda --out gpu.json     # the same table on a GPU
-    # a screen candidate's training scheme at K=5 against DDPG and TD3 (rows "soup K=5 NAME b...")
+    # a training scheme at K=5 against DDPG and TD3 (rows "soup K=5 NAME b...")
     python benchmarks/throughput.py --only td3 crit-redq --out scheme.json \
         --scheme crit-redq:train_heads=all_critics,target_q=redq,target_policy_noise=0.2,policy_delay=2
+    # the screen's candidates (their names; those that set policy_kwargs are left out)
+    python benchmarks/throughput.py --batch-sizes 256 --memory-buffer 0 --only td3 soup_ --out candidates.json \
+        --candidates docs/results/screen/candidates.yml
 """
 
 import argparse
@@ -31,6 +34,7 @@ import ast
 import json
 import os
 import platform
+import re
 import statistics
 import subprocess
 import sys
@@ -74,7 +78,7 @@ def config_name(config: dict[str, Any]) -> str:
         return f"{config['algo']} b{config['batch_size']}"
     if config.get("defaults"):
         name = f"soup K={config['n_heads']} defaults b{config['batch_size']}"
-    elif config.get("scheme"):
+    elif "scheme_name" in config:
         name = f"soup K={config['n_heads']} {config['scheme_name']} b{config['batch_size']}"
     else:
         name = f"soup K={config['n_heads']} {config['train_heads']} {config['confidence']} b{config['batch_size']}"
@@ -85,24 +89,47 @@ def scheme(config: dict[str, Any]) -> dict[str, Any]:
     """A SOUP row's training scheme and confidence."""
     if config.get("defaults"):
         return soup_defaults()
-    if config.get("scheme"):  # a named scheme (--scheme): SOUP's defaults with these settings
+    if "scheme_name" in config:  # a named scheme (--scheme): SOUP's defaults with these settings
         return {**soup_defaults(), **config["scheme"]}
     return {**PAPER_SCHEME, "train_heads": config["train_heads"], "confidence": config["confidence"]}
 
 
+def check_scheme(name: str, settings: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """A scheme's settings are SOUP's arguments besides the networks' (whose FLOPs the table counts at the paper's sizes)."""
+    if "policy_kwargs" in settings:
+        raise ValueError(f"scheme {name}: policy_kwargs are not measured (the table counts the paper's network sizes)")
+    return name, settings
+
+
 def parse_scheme(text: str) -> tuple[str, dict[str, Any]]:
-    """``NAME:key=value,key=value`` (values as Python literals, else strings) -> (NAME, settings)."""
+    """``NAME:key=value,key=value`` (values as Python literals, else strings; ``n_heads`` sets K) -> (NAME, settings)."""
     name, _, settings = text.partition(":")
     if not name or not settings:
         raise argparse.ArgumentTypeError(f"--scheme takes NAME:key=value,key=value..., got {text!r}")
     scheme_settings = {}
-    for item in settings.split(","):
+    for item in re.split(r",(?![^\[(]*[\])])", settings):  # the commas outside brackets
         key, _, value = item.partition("=")
         try:
             scheme_settings[key.strip()] = ast.literal_eval(value.strip())
         except (ValueError, SyntaxError):
             scheme_settings[key.strip()] = value.strip()
-    return name, scheme_settings
+    try:
+        return check_scheme(name, scheme_settings)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
+def read_schemes(path: str, only: list[str] | None) -> list[tuple[str, dict[str, Any]]]:
+    """The screen's candidates (``sb3_soup.experiments.grid.read_candidates``) as schemes, but those that set networks."""
+    from sb3_soup.experiments.grid import read_candidates
+
+    schemes = []
+    for name, settings in read_candidates(path, only).items():
+        if "policy_kwargs" in settings and not only:
+            print(f"not measured: {name} (policy_kwargs)", file=sys.stderr)
+            continue
+        schemes.append(check_scheme(name, settings))
+    return schemes
 
 
 def make_configs(
@@ -118,7 +145,11 @@ def make_configs(
         configs += [dict(algo=algo, batch_size=batch_size) for algo in baselines]
         configs.append(dict(algo="soup", batch_size=batch_size, n_heads=5, defaults=True))
         for scheme_name, settings in schemes or []:
-            configs.append(dict(algo="soup", batch_size=batch_size, n_heads=5, scheme_name=scheme_name, scheme=settings))
+            n_heads = settings.get("n_heads", 5)
+            scheme_settings = {key: value for key, value in settings.items() if key != "n_heads"}
+            configs.append(
+                dict(algo="soup", batch_size=batch_size, n_heads=n_heads, scheme_name=scheme_name, scheme=scheme_settings)
+            )
         heads = (10,) if quick else (1, 5, 10)
         for n_heads in heads:
             for train_heads in ("active", "all"):
@@ -450,8 +481,15 @@ def main() -> None:
         type=parse_scheme,
         action="append",
         default=[],
-        help="a named training scheme, NAME:key=value,... (SOUP's defaults with these settings), measured at K=5; repeatable",
+        help="a named training scheme, NAME:key=value,... (SOUP's defaults with these settings), measured at K=5 unless "
+        "it sets n_heads; repeatable",
     )
+    parser.add_argument(
+        "--candidates",
+        default=None,
+        help="the screen's candidates file (docs/results/screen/candidates.yml) as schemes (those without policy_kwargs)",
+    )
+    parser.add_argument("--candidates-only", nargs="+", default=None, help="with --candidates: these candidates only")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -467,7 +505,8 @@ def main() -> None:
     args.learning_starts = args.learning_starts or (256 if args.quick else 1024)
     memory_buffer = args.memory_buffer if args.memory_buffer is not None else (20_000 if args.quick else 1_000_000)
     batch_sizes = [args.batch_sizes[0]] if args.quick else args.batch_sizes
-    configs = make_configs(args.quick, batch_sizes, args.scheme)
+    schemes = list(args.scheme) + (read_schemes(args.candidates, args.candidates_only) if args.candidates else [])
+    configs = make_configs(args.quick, batch_sizes, schemes)
     if args.only:
         configs = [c for c in configs if c["algo"] == "ddpg" or any(s in config_name(c) for s in args.only)]
     if args.before:

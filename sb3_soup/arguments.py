@@ -50,7 +50,8 @@ ARGUMENT_RULES: dict[str, Rule] = {
 
 def check_arguments(**kwargs: Any) -> dict[str, Any]:
     """
-    :param kwargs: SOUP's arguments (those without a rule in :data:`ARGUMENT_RULES` pass through unchecked)
+    :param kwargs: SOUP's arguments (those without a rule in :data:`sb3_soup.arguments.ARGUMENT_RULES` pass through
+        unchecked)
     :return: the arguments, each checked by its rule (numbers as Python ``int``/``float``/``bool``)
     """
     return {name: (ARGUMENT_RULES[name](name, value) if name in ARGUMENT_RULES else value) for name, value in kwargs.items()}

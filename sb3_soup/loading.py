@@ -31,8 +31,9 @@ STRUCTURAL_ARGUMENTS = ("n_heads", "n_actor_heads", "n_critic_heads", "preset", 
 
 def check_save_format(data: dict[str, Any], path: Any) -> None:
     """
-    Refuse a file that is not a SOUP model in this version's save format (:data:`SAVE_FORMAT_VERSION`), saying which
-    versions and what to do: the version check of sb3-soup's model files.
+    Refuse a file that is not a SOUP model in this version's save format
+    (:data:`sb3_soup.loading.SAVE_FORMAT_VERSION`), saying which versions and what to do: the version check of
+    sb3-soup's model files.
 
     :param data: the file's ``data`` (:func:`sb3_soup.checkpoint.read_model_data`)
     :param path: the file, for the message
@@ -62,8 +63,8 @@ def check_save_format(data: dict[str, Any], path: Any) -> None:
 
 def check_loadable(data: dict[str, Any], path: Any, kwargs: dict[str, Any]) -> None:
     """
-    Refuse what ``SOUP.load`` cannot do: a file in another save format (:func:`check_save_format`), or keyword
-    arguments that would change what the saved model fixes (:data:`STRUCTURAL_ARGUMENTS`).
+    Refuse what ``SOUP.load`` cannot do: a file in another save format (:func:`sb3_soup.loading.check_save_format`), or keyword
+    arguments that would change what the saved model fixes (:data:`sb3_soup.loading.STRUCTURAL_ARGUMENTS`).
 
     :param data: the file's ``data`` (:func:`sb3_soup.checkpoint.read_model_data`)
     :param path: the file, for the messages
@@ -97,8 +98,9 @@ class CheckedLoading(OffPolicyAlgorithm):
     ) -> SelfCheckedLoading:
         """
         SB3's ``load`` (see there for the parameters), once the file is checked to be a SOUP model in this version's
-        save format (:func:`check_loadable`). ``kwargs`` may change settings (e.g. ``learning_starts``), not those
-        that shape the networks or the strategy (head counts, preset, confidence): the file's.
+        save format (:func:`sb3_soup.loading.check_loadable`). ``kwargs`` may change settings (e.g.
+        ``learning_starts``), not those that shape the networks or the strategy (head counts, preset, confidence): the
+        file's.
         """
         check_loadable(read_model_data(path), path, kwargs)
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **check_arguments(**kwargs))

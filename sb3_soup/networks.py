@@ -297,6 +297,12 @@ class EnsembleCritic(EnsembleModel):
                 f"net_arch['qf_body'] needs at least 2 layers (the action joins at the second), got {body_arch}; "
                 "with net_arch['qf_action_layer']=0 the action joins at the input (SB3's critic) and any body goes"
             )
+        if layer_norm and not body_arch:
+            raise ValueError(
+                "layer_norm=True puts a LayerNorm after each layer of the critic's shared body, and net_arch gives it none "
+                "(qf_body=[]; in SB3's list form the last layer is each head's, the others the body): give the critic a "
+                "body (e.g. net_arch=[256, 256, 128]) or leave layer_norm out"
+            )
         self.action_layer = action_layer
         self.layer_norm = layer_norm
         action_dim = get_action_dim(action_space)

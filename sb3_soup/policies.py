@@ -308,8 +308,8 @@ class SOUPPolicy(BasePolicy):
     :param n_critics: SB3's number of critic networks (TD3Policy's argument): SOUP's critics are its ``n_critic_heads``,
         each head one critic as SB3's ``n_critics=1`` builds; 1 is accepted, more warn and are ignored (TD3's clipped
         double Q across the heads: SOUP's ``target_q="min_pair"``)
-    :param layer_norm: a LayerNorm after each linear layer of the critic's shared body, before its activation (as
-        SBX's ``layer_norm``, for the critics only); False (the default): none
+    :param layer_norm: a LayerNorm after each linear layer of the critic's shared body, before its activation (SBX's
+        name; unlike SBX's, the heads' hidden layers have none); False (the default): none
     """
 
     actor: EnsembleActor

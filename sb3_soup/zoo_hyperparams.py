@@ -7,7 +7,6 @@ rebuild exactly what a trial trained.
 
 from typing import Any
 
-from sb3_soup.arguments import TARGET_Q, TRAIN_HEADS
 from sb3_soup.noise import DECAYING_NORMAL, zoo_action_noise
 
 # Bodies and heads of actor (pi) and critic (qf); "paper" is SOUP's default (Section 5 of the paper).
@@ -18,6 +17,10 @@ NET_ARCHS: dict[str, dict[str, list[int]]] = {
 }
 N_HEADS = (3, 5, 10)
 CONFIDENCES = ("none", "fixed", "decayed", "adaptive", "ucb")
+# The search space of the training scheme (a subset of what SOUP accepts, sb3_soup.arguments; an Optuna study cannot
+# resume once a categorical's choices change, so a new choice joins only with a new space)
+TRAIN_HEADS = ("active", "all_critics", "all")
+TARGET_Q = ("own", "min_pair")
 
 
 def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:

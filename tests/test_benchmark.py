@@ -87,3 +87,19 @@ def test_a_named_scheme_is_a_row_of_soups_defaults_with_its_settings():
     )
     with pytest.raises(Exception, match="NAME:key=value"):
         bench.parse_scheme("no-settings")
+
+
+def test_the_screens_candidates_are_schemes_but_those_that_set_the_networks(capsys):
+    bench = load_benchmark()
+    path = pathlib.Path(__file__).resolve().parents[1] / "docs" / "results" / "screen" / "candidates.yml"
+    schemes = dict(bench.read_schemes(str(path), None))
+    assert "soup_crit_redq_s_d2" in schemes and "soup_layer_norm" not in schemes
+    assert "not measured: soup_layer_norm (policy_kwargs)" in capsys.readouterr().err
+    configs = bench.make_configs(quick=True, batch_sizes=[256], schemes=list(schemes.items()))
+    names = {bench.config_name(c): c for c in configs}
+    assert names["soup K=10 soup_k10 b256"]["n_heads"] == 10  # n_heads sets K
+    assert bench.scheme(names["soup K=5 soup_mask1 b256"])["mask_prob"] == 1.0
+    # values with commas inside brackets stay whole; networks are refused
+    assert bench.parse_scheme("a:n_heads=3,x=[1, 2]") == ("a", dict(n_heads=3, x=[1, 2]))
+    with pytest.raises(Exception, match="policy_kwargs are not measured"):
+        bench.parse_scheme("a:policy_kwargs=dict(layer_norm=True)")

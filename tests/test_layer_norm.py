@@ -73,6 +73,13 @@ def test_a_layer_norm_model_saves_loads_and_exports(tmp_path):
         np.testing.assert_allclose(actions, model.predict(obs, deterministic=True)[0], rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("net_arch", [[64], [], dict(qf_body=[], qf_action_layer=0)])
+def test_layer_norm_without_a_critic_body_is_refused(net_arch):
+    with pytest.raises(ValueError, match=r"layer_norm=True puts a LayerNorm after each layer of the critic's shared body"):
+        SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=net_arch, layer_norm=True), **SMALL)
+    SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=net_arch), **SMALL)  # without it: accepted
+
+
 def test_layer_norm_must_be_a_bool():
     message = r"layer_norm must be True or False \(LayerNorms in the critic's body\), got 1 \(int\)"
     with pytest.raises(ValueError, match=message):
