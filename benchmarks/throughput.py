@@ -171,6 +171,11 @@ def make_configs(
 # ----- FLOP count -------------------------------------------------------------------------------------------------
 
 
+def baseline_arch(config: dict[str, Any]) -> list[int]:
+    """The hidden layers of an SB3 baseline row: SB3's default TD3's for "td3-sb3", DDPG's for the others."""
+    return TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH
+
+
 def _mlp_macs(sizes: list[int]) -> int:
     """Multiply-accumulates of one sample through linear layers of these sizes."""
     return sum(sizes[i] * sizes[i + 1] for i in range(len(sizes) - 1))
@@ -186,7 +191,7 @@ def train_flops(config: dict[str, Any]) -> float:
     """
     batch = config["batch_size"]
     if config["algo"] in ("ddpg", "td3", "td3-sb3"):
-        arch = TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH
+        arch = baseline_arch(config)
         actor = _mlp_macs([OBS_DIM, *arch, ACT_DIM])
         critic = _mlp_macs([OBS_DIM + ACT_DIM, *arch, 1])
         n_critics = 1 if config["algo"] == "ddpg" else 2
@@ -221,7 +226,7 @@ def predict_flops(config: dict[str, Any]) -> float:
     confidence network (adaptive).
     """
     if config["algo"] in ("ddpg", "td3", "td3-sb3"):
-        return 2.0 * _mlp_macs([OBS_DIM, *(TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH), ACT_DIM])
+        return 2.0 * _mlp_macs([OBS_DIM, *baseline_arch(config), ACT_DIM])
     k = config["n_heads"]
     actor = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]]) + k * _mlp_macs(
         [SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM]
@@ -254,8 +259,7 @@ def _make_model(config: dict[str, Any], device: str, buffer_size: int, learning_
     )
     if config["algo"] in ("ddpg", "td3", "td3-sb3"):
         algo = DDPG if config["algo"] == "ddpg" else TD3
-        arch = TD3_SB3_ARCH if config["algo"] == "td3-sb3" else DDPG_ARCH
-        return algo("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=list(arch)), **common)
+        return algo("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=list(baseline_arch(config))), **common)
     return SOUP(
         "MlpPolicy", ENV_ID, n_heads=config["n_heads"], policy_kwargs=dict(net_arch=SOUP_ARCH), **scheme(config), **common
     )

@@ -1,7 +1,5 @@
 """sb3-soup: SOUP (Self-Adaptive Double Bootstrapped DDPG, Zheng et al., IJCAI 2018) for Stable-Baselines3."""
 
-import os
-
 from sb3_soup.buffers import (
     BootstrappedDictReplayBuffer,
     BootstrappedHerReplayBuffer,
@@ -19,15 +17,11 @@ from sb3_soup.confidence import (
     UCBConfidence,
 )
 from sb3_soup.export import export_onnx
+from sb3_soup.loading import __version__  # read from version.txt, as saved models record it
 from sb3_soup.noise import DecayingNormalActionNoise
 from sb3_soup.policies import CnnPolicy, EnsembleView, MlpPolicy, MultiInputPolicy, ObservationSpaceError, SOUPPolicy
 from sb3_soup.presets import PRESETS, paper_settings
 from sb3_soup.soup import SOUP
-
-# Read version from file
-version_file = os.path.join(os.path.dirname(__file__), "version.txt")
-with open(version_file) as file_handler:
-    __version__ = file_handler.read().strip()
 
 __all__ = [
     "PRESETS",
