@@ -224,6 +224,19 @@ def test_report_normalises_per_task_and_aggregates_complete_models(hand_made, tm
     assert json.loads((tmp_path / "report" / "screen.json").read_text())["aggregate"]["ddpg_zoo"]["runs"] == 4
 
 
+def test_report_draws_each_tasks_learning_curves_from_the_scored_runs(hand_made, tmp_path):
+    data = screen.screen_report(hand_made, tmp_path / "report", tasks=["Pendulum-v1", "Hopper-v4"], reps=REPS)
+    assert {"curves.png", "curves.json"} <= set(data["files"]) and (tmp_path / "report" / "curves.png").stat().st_size
+    curves = json.loads((tmp_path / "report" / "curves.json").read_text())
+    assert list(curves) == ["Pendulum-v1", "Hopper-v4"] and curves["Hopper-v4"]["random"] == 0.0
+    hopper = {model["label"]: model for model in curves["Hopper-v4"]["models"]}
+    assert list(hopper) == ["TD3 (RL Zoo)", "DDPG (RL Zoo)", "soup_x"]  # td3_short trained Pendulum only, off protocol
+    # each run evaluated at half the budget (-5000) and at the budget (its final score); soup_x: its one finished run
+    assert hopper["soup_x"]["steps"] == [25_000, 50_000] and hopper["soup_x"]["iqm"] == [-5000.0, 2000.0]
+    assert hopper["TD3 (RL Zoo)"]["iqm"] == [-5000.0, pytest.approx(1000.0)]
+    assert hopper["DDPG (RL Zoo)"]["low"][1] <= 400.0 <= hopper["DDPG (RL Zoo)"]["high"][1]
+
+
 def test_partial_report_aggregates_a_model_over_the_tasks_it_has_complete(hand_made, tmp_path):
     data = screen.screen_report(hand_made, tmp_path / "partial", tasks=["Pendulum-v1", "Hopper-v4"], partial=True, reps=REPS)
     soup = data["aggregate"]["soup_x"]
@@ -239,7 +252,8 @@ def test_partial_report_aggregates_a_model_over_the_tasks_it_has_complete(hand_m
 def test_report_on_a_screen_without_a_complete_model(hand_made, tmp_path):
     tasks = ["Pendulum-v1", "Hopper-v4"]
     data = screen.screen_report(hand_made, tmp_path / "report", tasks=tasks, models=["soup_x"], reps=REPS)
-    assert data["aggregate"] == {} and data["files"] == ["screen.md", "screen.json"]
+    # no aggregate figures; the curves of the runs scored so far
+    assert data["aggregate"] == {} and data["files"] == ["screen.md", "screen.json", "curves.png", "curves.json"]
     text = (tmp_path / "report" / "screen.md").read_text()
     assert "No model is complete on every task yet" in text and "TD3 (RL Zoo): none yet." in text
     with pytest.raises(ValueError, match="No runs of"):

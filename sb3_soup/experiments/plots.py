@@ -167,24 +167,35 @@ def plot_confidence(
 
 
 def plot_evaluations(
-    curves: Mapping[str, Sequence[tuple[str, Sequence[int], Sequence[tuple[float, float, float]]]]], path: str | os.PathLike
+    curves: Mapping[str, Sequence[tuple[str, Sequence[int], Sequence[tuple[float, float, float]]]]],
+    path: str | os.PathLike,
+    columns: int | None = None,
+    references: Mapping[str, float] | None = None,
 ) -> None:
     """
     Deterministic evaluation return over training: the IQM over runs with its 95% confidence band, one panel per env.
 
     :param curves: env -> [(label, steps, [(iqm, low, high) per step])]
     :param path: the PNG file
+    :param columns: panels per row (default: every env in one row)
+    :param references: env -> a return drawn as a dotted line (e.g. a random policy's), labelled "random policy"
     """
-    fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 4.2), squeeze=False)
-    for ax, (env_id, env_curves) in zip(axes[0], curves.items(), strict=True):
+    columns = min(columns or len(curves), len(curves))
+    rows = -(-len(curves) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(6 * columns, 4.2 * rows), squeeze=False)
+    for ax, (env_id, env_curves) in zip(axes.ravel(), curves.items()):
         for label, steps, estimates in env_curves:
             values = np.asarray(estimates, dtype=float).reshape(-1, 3)
             ax.plot(steps, values[:, 0], label=label)
             ax.fill_between(steps, values[:, 1], values[:, 2], alpha=0.2)
+        if references is not None and env_id in references:
+            ax.axhline(references[env_id], color="0.5", ls=":", lw=1, label="random policy")
         ax.set_title(f"{env_id}: evaluation return (IQM, 95% CI)")
         ax.set_xlabel("environment steps")
         ax.set_ylabel("return")
         ax.legend(fontsize="small")
+    for ax in axes.ravel()[len(curves) :]:
+        ax.set_visible(False)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

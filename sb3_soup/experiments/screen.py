@@ -174,11 +174,13 @@ class Cell:
     :param scores: seed -> final score, for the runs that have one
     :param expected: the seeds the model should have
     :param notes: seed -> why it has no score (not started, running at step s, failed, off the task's protocol...)
+    :param run_dirs: seed -> the folder of the run that has its score
     """
 
     scores: dict[int, float]
     expected: list[int]
     notes: dict[int, str]
+    run_dirs: dict[int, str] = dataclasses.field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -235,6 +237,7 @@ def collect_screen(
                 score = None if differs else final_score(record)
                 if score is not None:
                     cell.scores[record.spec.seed] = score
+                    cell.run_dirs[record.spec.seed] = record.spec.run_dir
                 elif record.spec.seed in expected:
                     cell.notes[record.spec.seed] = f"off the task's protocol: {differs}" if differs else _note(record, score)
             for seed in expected:
@@ -367,7 +370,8 @@ def screen_report(
     """
     Score, normalise and aggregate a screen's runs; write ``screen.md``, ``screen.json`` and the figures, each with the
     JSON behind it next to it: ``aggregate.png`` (IQM and mean), ``improvement.png`` (probabilities of improvement)
-    and ``performance_profiles.png``.
+    and ``performance_profiles.png``; and ``curves.png``, each task's learning curves (per model, the IQM over its
+    scored runs of their evaluation returns, with 95% intervals), which need no aggregate.
 
     :param root: the screen's folder (``ROOT/<env_id>/<model>/seed_<n>``); only read
     :param report_dir: where to write (default: ``root/report``)
@@ -395,7 +399,7 @@ def screen_report(
                                   "complete": cell.complete}  # fmt: skip
     screen = Screen(root, suite, order, labels, cells, randoms, references)
     aggregate, matrices = aggregate_screen(screen, partial, reps)
-    figures = _figures(target, screen, aggregate, matrices, reps)
+    figures = _figures(target, screen, aggregate, matrices, reps) + _curve_figure(target, screen, max(1, reps // 5))
     data = {
         "root": str(root),
         "tasks": [dataclasses.asdict(task) for task in suite],
@@ -659,6 +663,49 @@ def _figures(target: Path, screen: Screen, aggregate: dict[str, Any], matrices: 
     }
     _write(target / "performance_profiles.json", {"tau": taus.tolist(), "models": curves})
     return [*files, "performance_profiles.png", "performance_profiles.json"]
+
+
+def learning_curves(screen: Screen, reps: int) -> dict[str, list[tuple[str, list[int], list[tuple[float, float, float]]]]]:
+    """
+    :param screen: the screen
+    :param reps: bootstrap resamples per evaluation step
+    :return: env id -> per model with scored runs there, ``(label, steps, [(IQM, low, high) per step])``: the IQM over
+        its scored runs of their evaluation returns, at the evaluation steps they all have
+    """
+    curves = {}
+    for env_id in screen.env_ids:
+        rows = []
+        for model in screen.models:
+            runs = [evaluation.read_run(run_dir) for run_dir in screen.cells[model][env_id].run_dirs.values()]
+            steps = evaluation.common_steps(runs)
+            if steps:
+                estimates = evaluation.iqm_curve(runs, steps, reps=reps)
+                rows.append((screen.labels[model], steps, [(e.value, e.low, e.high) for e in estimates]))
+        if rows:
+            curves[env_id] = rows
+    return curves
+
+
+def _curve_figure(target: Path, screen: Screen, reps: int) -> list[str]:
+    """Each task's learning curves (``curves.png``, a panel per task) and the JSON behind them; none without a score."""
+    curves = learning_curves(screen, reps)
+    if not curves:
+        return []
+    from sb3_soup.experiments.plots import plot_evaluations
+
+    plot_evaluations(curves, target / "curves.png", columns=4, references={e: screen.random[e]["mean"] for e in curves})
+    data = {
+        env_id: {
+            "random": screen.random[env_id]["mean"],
+            "models": [
+                {"label": label, "steps": steps, **dict(zip(("iqm", "low", "high"), map(list, zip(*estimates)), strict=True))}
+                for label, steps, estimates in rows
+            ],
+        }
+        for env_id, rows in curves.items()
+    }
+    _write(target / "curves.json", data)
+    return ["curves.png", "curves.json"]
 
 
 def _write(path: Path, data: Any) -> None:
