@@ -371,7 +371,8 @@ def screen_report(
     Score, normalise and aggregate a screen's runs; write ``screen.md``, ``screen.json`` and the figures, each with the
     JSON behind it next to it: ``aggregate.png`` (IQM and mean), ``improvement.png`` (probabilities of improvement)
     and ``performance_profiles.png``; and ``curves.png``, each task's learning curves (per model, the IQM over its
-    scored runs of their evaluation returns, with 95% intervals), which need no aggregate.
+    scored runs of their evaluation returns, with 95% intervals from a twentieth of ``reps``: rliable's bootstrap costs
+    milliseconds per resample, and a curve has one per evaluation step), which need no aggregate.
 
     :param root: the screen's folder (``ROOT/<env_id>/<model>/seed_<n>``); only read
     :param report_dir: where to write (default: ``root/report``)
@@ -380,7 +381,7 @@ def screen_report(
     :param seeds: the seeds every model should have (default: per model, those its runs have on any task)
     :param partial: aggregate each model over the tasks where it is complete, even when it is not complete on all
         (marked); default: only models complete on every task enter the aggregate
-    :param reps: bootstrap resamples of the intervals (the performance profiles' bands use a fifth)
+    :param reps: bootstrap resamples of the intervals (the performance profiles' bands use a fifth, the curves a twentieth)
     :param random_episodes: the random policy's episodes per task
     :return: the data written to ``screen.json``
     """
@@ -399,7 +400,7 @@ def screen_report(
                                   "complete": cell.complete}  # fmt: skip
     screen = Screen(root, suite, order, labels, cells, randoms, references)
     aggregate, matrices = aggregate_screen(screen, partial, reps)
-    figures = _figures(target, screen, aggregate, matrices, reps) + _curve_figure(target, screen, max(1, reps // 5))
+    figures = _figures(target, screen, aggregate, matrices, reps) + _curve_figure(target, screen, max(1, reps // 20))
     data = {
         "root": str(root),
         "tasks": [dataclasses.asdict(task) for task in suite],
