@@ -265,6 +265,25 @@ def test_grid_suites_and_overrides(tmp_path):
     assert set(VARIANTS) >= {"ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup", "td3", "none", "fixed", "decayed", "adaptive"}
 
 
+def test_benchmark_suite_runs_what_peers_publish(tmp_path):
+    """One command per env: SOUP's defaults and TD3 with 5 seeds, the paper's SOUP, DDPG and SAC with 3 (issue 19)."""
+    specs = build_grid("Hopper-v4", tmp_path, suite="benchmark", timesteps=200_000)
+    seeds: dict[str, list[int]] = {}
+    for spec in specs:
+        seeds.setdefault(spec.variant, []).append(spec.seed)
+    assert seeds == {
+        "soup_defaults": [0, 1, 2, 3, 4],
+        "soup": [0, 1, 2],  # the paper's SOUP, stored as the models suite's soup
+        "ddpg_zoo": [0, 1, 2],
+        "td3_zoo": [0, 1, 2, 3, 4],
+        "sac_zoo": [0, 1, 2],
+    }
+    assert {spec.timesteps for spec in specs} == {200_000} and {spec.eval_freq for spec in specs} == {10_000}
+    # given seeds are every model's
+    given = build_grid("Hopper-v4", tmp_path, suite="benchmark", models=["td3_zoo", "sac_zoo"], seeds=[7], timesteps=100)
+    assert [(spec.model, spec.seed) for spec in given] == [("td3_zoo", 7), ("sac_zoo", 7)]
+
+
 def test_confidence_suite_shares_the_models_suites_runs(tmp_path):
     models = {spec.key: spec for spec in build_grid("Hopper-v4", tmp_path, suite="models", seeds=[0])}
     confidence = build_grid("Hopper-v4", tmp_path, suite="confidence", seeds=[0])

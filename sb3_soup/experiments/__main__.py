@@ -4,6 +4,7 @@ Command line of the experiment runner.
     python -m sb3_soup.experiments run --suite models --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
     python -m sb3_soup.experiments run --suite confidence --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
     python -m sb3_soup.experiments report runs/hopper
+    python -m sb3_soup.experiments run --suite benchmark --env Hopper-v4 --timesteps 200000 --out runs/benchmark-Hopper-v4
     python -m sb3_soup.experiments report runs/hopper --suite confidence
     python -m sb3_soup.experiments trap runs/hopper --suite models
     python -m sb3_soup.experiments screen run --root runs/screen --models td3_zoo,ddpg_zoo,sac_zoo,soup_defaults
@@ -65,7 +66,12 @@ def make_parser() -> argparse.ArgumentParser:
         help="store the runs as this model (folder and column title), e.g. for ablations: several --hyperparams settings "
         "of one model side by side in one --out folder (needs exactly one of --models)",
     )
-    run.add_argument("--seeds", type=parse_seeds, default=[0, 1, 2], help="a count (3 -> 0,1,2) or a list (1,5)")
+    run.add_argument(
+        "--seeds",
+        type=parse_seeds,
+        help="a count (3 -> 0,1,2) or a list (1,5), for every model (default: 3 each; the benchmark suite: 5 for "
+        "soup_defaults and td3_zoo)",
+    )
     run.add_argument("--timesteps", type=int, help="steps per run (default: n_timesteps from soup.yml, else 100000)")
     run.add_argument("--out", required=True, help="experiment folder")
     run.add_argument(

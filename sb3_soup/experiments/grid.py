@@ -111,11 +111,21 @@ class Suite:
     :param variants: its variants, in table order
     :param heads: its default head counts K
     :param baseline: the variant Speed Up is measured against by default (Table 1: DDPG)
+    :param seeds: how many seeds (0, 1, ...) a run of the suite gives each variant when no seeds are given; the
+        variants it leaves out get :data:`DEFAULT_SEEDS`
     """
 
     variants: tuple[str, ...]
     heads: tuple[int, ...]
     baseline: str
+    seeds: dict[str, int] = dataclasses.field(default_factory=dict)
+
+    def seeds_of(self, variant: str) -> list[int]:
+        """:return: the seeds a run of the suite gives ``variant`` by default"""
+        return list(range(self.seeds.get(variant, DEFAULT_SEEDS)))
+
+
+DEFAULT_SEEDS = 3
 
 
 SUITES: dict[str, Suite] = {
@@ -125,8 +135,14 @@ SUITES: dict[str, Suite] = {
     "confidence": Suite(("none", "fixed", "decayed", "adaptive"), (DEFAULT_HEADS,), "none"),
     # Figure 7 (and Table 1's K=10 columns): Speed Up against DDPG when the folder has it (the models suite's runs).
     "heads": Suite(("soup",), (3, 5, 10), "ddpg"),
-    # What peers publish: deterministic evaluations of SOUP against SB3's DDPG and TD3 as the RL Zoo trains them.
-    "benchmark": Suite(("soup_defaults", "soup_paper", "ddpg_zoo", "td3_zoo"), (DEFAULT_HEADS,), "ddpg_zoo"),
+    # What peers publish: deterministic evaluations of SOUP against SB3's TD3, DDPG and SAC as the RL Zoo trains them,
+    # SOUP's defaults and TD3 with 5 seeds, the others with 3 (issue 19)
+    "benchmark": Suite(
+        ("soup_defaults", "soup_paper", "ddpg_zoo", "td3_zoo", "sac_zoo"),
+        (DEFAULT_HEADS,),
+        "ddpg_zoo",
+        seeds={"soup_defaults": 5, "td3_zoo": 5},
+    ),
 }
 
 
@@ -357,7 +373,7 @@ def build_grid(
     suite: str = "models",
     models: Sequence[str] | None = None,
     heads: Sequence[int] | None = None,
-    seeds: Sequence[int] = (0, 1, 2),
+    seeds: Sequence[int] | None = None,
     timesteps: int | None = None,
     overrides: dict[str, dict[str, Any]] | None = None,
     hyperparams_file: str | os.PathLike | None = None,
@@ -383,7 +399,7 @@ def build_grid(
     :param suite: ``"models"``, ``"confidence"`` or ``"heads"``
     :param models: narrow the suite to these variants (any name in :data:`VARIANTS` is accepted)
     :param heads: the head counts K (default: the suite's)
-    :param seeds: the seeds
+    :param seeds: the seeds of every model (default: the suite's, :meth:`Suite.seeds_of`)
     :param timesteps: steps per run (default: the ``n_timesteps`` of the env's entry in the variants' files, else 100k)
     :param overrides: from :func:`parse_overrides`
     :param hyperparams_file: an RL-Zoo style file to read instead of the variants' own (see :attr:`Variant.source`)
@@ -424,7 +440,7 @@ def build_grid(
             stored = twin if same and twin is not None else variant
             model = name or _model_id(stored.name, n_heads)
             label = name or _format(stored.label, n_heads)
-            for seed in seeds:
+            for seed in SUITES[suite].seeds_of(variant_name) if seeds is None else seeds:
                 specs.append(
                     RunSpec(
                         env_id=env_id,
