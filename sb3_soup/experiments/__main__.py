@@ -3,8 +3,8 @@ Command line of the experiment runner.
 
     python -m sb3_soup.experiments run --suite models --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
     python -m sb3_soup.experiments run --suite confidence --env Hopper-v4 --timesteps 100000 --seeds 3 --out runs/hopper
-    python -m sb3_soup.experiments report runs/hopper
     python -m sb3_soup.experiments run --suite benchmark --env Hopper-v4 --timesteps 200000 --out runs/benchmark-Hopper-v4
+    python -m sb3_soup.experiments report runs/hopper
     python -m sb3_soup.experiments report runs/hopper --suite confidence
     python -m sb3_soup.experiments trap runs/hopper --suite models
     python -m sb3_soup.experiments screen run --root runs/screen --models td3_zoo,ddpg_zoo,sac_zoo,soup_defaults

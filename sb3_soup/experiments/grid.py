@@ -103,6 +103,9 @@ VARIANTS: dict[str, Variant] = {
 }
 
 
+DEFAULT_SEEDS = 3  # seeds per variant of a suite, unless the suite or the command gives others
+
+
 @dataclasses.dataclass(frozen=True)
 class Suite:
     """
@@ -123,9 +126,6 @@ class Suite:
     def seeds_of(self, variant: str) -> list[int]:
         """:return: the seeds a run of the suite gives ``variant`` by default"""
         return list(range(self.seeds.get(variant, DEFAULT_SEEDS)))
-
-
-DEFAULT_SEEDS = 3
 
 
 SUITES: dict[str, Suite] = {
