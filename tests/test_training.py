@@ -18,8 +18,12 @@ from sb3_soup.buffers import BootstrappedReplayBufferSamples
 BATCH = 16
 
 
+# The paper's update (Algorithm 1): what each test changes one setting of, unless it says otherwise
+PAPER_SCHEME = dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)
+
+
 def _model(**kwargs) -> SOUP:
-    kwargs.setdefault("n_heads", 3)
+    kwargs = {"n_heads": 3, **PAPER_SCHEME, **kwargs}
     return SOUP("MlpPolicy", "Pendulum-v1", learning_starts=0, batch_size=BATCH, seed=0, **kwargs)
 
 
@@ -78,6 +82,20 @@ def _body_changed(before: dict[str, th.Tensor], after: dict[str, th.Tensor], pre
         for name, value in before.items()
         if name.startswith(prefix) and ".heads." not in name and value.is_floating_point()
     )
+
+
+def test_the_default_scheme_trains_every_pair_with_td3s_target_smoothing_and_delay():
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, learning_starts=0, batch_size=BATCH, seed=0)
+    assert (model.train_heads, model.target_q, model.policy_delay) == ("all", "min_pair", 2)
+    assert (model.target_policy_noise, model.target_noise_clip) == (0.2, 0.5)
+    before = _snapshot(model)
+    _step(model, _batch(3))  # update 1: every critic head, no actor
+    after = _snapshot(model)
+    assert _changed_heads(before, after, "critic.") == [0, 1, 2] and _changed_heads(before, after, "actor.") == []
+    _step(model, _batch(3, seed=1))  # update 2: every actor head too, and the targets
+    final = _snapshot(model)
+    for prefix in ("actor.", "actor_target.", "critic_target."):
+        assert _changed_heads(after, final, prefix) == [0, 1, 2], prefix
 
 
 def test_active_pair_step_changes_that_head_and_the_bodies_only():
