@@ -263,10 +263,13 @@ def test_her_needs_a_goal_conditioned_env(env, replay_buffer_class, message):
 
 @pytest.mark.slow
 def test_soup_with_her_learns_bit_flipping_that_it_does_not_learn_without():
-    """8 bits: a random policy reaches the goal in ~3% of its episodes; HER's relabelled goals make it learnable."""
+    """
+    10 bits: a random policy reaches the goal in ~1% of its episodes; HER's relabelled goals make it learnable. (With 8
+    bits, ~3%, SOUP's defaults since 0.2.0a0 learn it without HER too: 1.0 in 5000 steps.)
+    """
 
     def train(**kwargs):
-        env = bit_flipping(n_envs=1, n_bits=8, seed=0)
+        env = bit_flipping(n_envs=1, n_bits=10, seed=0)
         model = SOUP("MultiInputPolicy", env, learning_starts=200, batch_size=128, gamma=0.95, seed=0, stats_window_size=50,
                      **kwargs)  # fmt: skip
         model.learn(5000)
