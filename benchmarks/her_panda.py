@@ -55,6 +55,11 @@ def make_model(algo: str, env: Any, seed: int) -> Any:
     return algo_class("MultiInputPolicy", env, action_noise=noise, policy_kwargs=dict(net_arch=MLP), **kwargs)
 
 
+def scheme(model: Any) -> dict[str, Any]:
+    """SOUP's training scheme, which its defaults set (recorded: the defaults changed in 0.2.0)."""
+    return {name: getattr(model, name) for name in ("train_heads", "target_q", "policy_delay", "target_policy_noise")}
+
+
 def run(algo: str, seed: int, timesteps: int, eval_freq: int, eval_episodes: int) -> dict[str, Any]:
     import panda_gym  # noqa: F401  (registers the Panda envs)
     import torch as th
@@ -84,7 +89,8 @@ def run(algo: str, seed: int, timesteps: int, eval_freq: int, eval_episodes: int
         timesteps=timesteps,
         eval_freq=eval_freq,
         eval_episodes=eval_episodes,
-        settings=dict(COMMON, her=HER_KWARGS, net_arch=SOUP_ARCH if algo == "soup" else MLP, action_noise="N(0, 0.1)"),
+        settings=dict(COMMON, her=HER_KWARGS, net_arch=SOUP_ARCH if algo == "soup" else MLP, action_noise="N(0, 0.1)")
+        | (scheme(model) if algo == "soup" else {}),
         evaluations=rows,
         final_success_rate=rows[-1]["success_rate"] if rows else None,
         training_success_rate_last_100_episodes=statistics.fmean(training_success) if training_success else None,

@@ -6,7 +6,8 @@ TensorBoard.
     python examples/train_hopper.py --timesteps 1000000 --n-heads 10 --settings paper
     tensorboard --logdir logs/tensorboard
 
-A 1M-step run takes hours on a laptop CPU (about 50-100 env-steps/s): use a bigger machine or
+A 1M-step run takes hours on a laptop CPU (about 20-50 env-steps/s with the defaults, which train every head pair
+each step): use a bigger machine or
 ``--timesteps 50000`` for a first look. Every ``--eval-freq`` steps the E-actions are evaluated and the best model
 is saved; checkpoints (replay buffer, random generators and environment state included) let an interrupted run,
 even one killed, continue with ``--resume`` exactly as if it had not stopped (see docs/reliability.md).

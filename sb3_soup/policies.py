@@ -176,8 +176,8 @@ def check_n_critics(n_critics: Any, n_critic_heads: int) -> None:
     if n_critics > 1:
         warnings.warn(
             f"policy_kwargs n_critics={n_critics} is ignored: SOUP's critics are its {n_critic_heads} critic heads "
-            "(n_critic_heads, each one critic as SB3's n_critics=1 builds); for TD3's clipped double Q use "
-            "target_q='min_pair' (the smaller of a head's target and another head's)",
+            "(n_critic_heads, each one critic as SB3's n_critics=1 builds); TD3's clipped double Q is SOUP's "
+            "default target_q='min_pair' (the smaller of a head's target and another head's)",
             UserWarning,
             stacklevel=4,
         )
@@ -307,7 +307,7 @@ class SOUPPolicy(BasePolicy):
         as SB3's TD3): each network has its own, trained by its own loss
     :param n_critics: SB3's number of critic networks (TD3Policy's argument): SOUP's critics are its ``n_critic_heads``,
         each head one critic as SB3's ``n_critics=1`` builds; 1 is accepted, more warn and are ignored (TD3's clipped
-        double Q across the heads: SOUP's ``target_q="min_pair"``)
+        double Q across the heads: SOUP's ``target_q="min_pair"``, the default)
     :param layer_norm: a LayerNorm after each linear layer of the critic's shared body, before its activation (SBX's
         name; unlike SBX's, the heads' hidden layers have none); False (the default): none
     """

@@ -94,7 +94,9 @@ class SOUP(CheckedLoading):
     :param n_actor_heads: actor heads (default: ``n_heads``, or the preset's)
     :param n_critic_heads: critic heads (default: ``n_heads``, or the preset's)
     :param preset: one of the paper's models (:data:`sb3_soup.PRESETS`): "ddpg", "ma_bddpg", "multi_ddpg", "dbddpg",
-        "soup"; it sets the head counts and the confidence
+        "soup"; it sets the head counts and the confidence, not the training scheme (for the paper's models, add
+        :func:`sb3_soup.paper_settings`, or the paper's update: ``train_heads="active", target_q="own", policy_delay=1,
+        target_policy_noise=0.0``)
     :param confidence: the E-Critic's strategy: "none", "fixed", "decayed", "adaptive" (default, or the preset's), "ucb",
         "lcb" or a :class:`sb3_soup.ConfidenceStrategy`
     :param confidence_kwargs: the strategy's arguments by its class's names (None: its defaults), e.g. ``alpha`` of
@@ -352,7 +354,7 @@ class SOUP(CheckedLoading):
             discounts = data.discounts if data.discounts is not None else self.gamma
 
             with th.no_grad():
-                # Eq. 4, each pair from its own target heads: y = r + gamma * (1 - done) * Q'_k(s', mu'_k(s'))
+                # Eq. 4 from pair k's target heads, y = r + gamma * (1 - done) * Q'_k(s', mu'_k(s')) (+ smoothing, min_pair)
                 next_actions = self.actor_target(data.next_observations, head=target_actor_heads.head_arg)  # (H or 1, B, A)
                 if self.target_policy_noise > 0:  # TD3's target policy smoothing
                     noise = th.randn_like(next_actions) * self.target_policy_noise

@@ -21,6 +21,11 @@ CONFIDENCES = ("none", "fixed", "decayed", "adaptive", "ucb")
 # resume once a categorical's choices change, so a new choice joins only with a new space)
 TRAIN_HEADS = ("active", "all_critics", "all")
 TARGET_Q = ("own", "min_pair")
+POLICY_DELAYS = (1, 2)
+TARGET_POLICY_NOISES = (0.0, 0.2)
+# What a trial sampled before 0.2.0 trained with: the search space had no delay and no smoothing, and SOUP's defaults
+# were these (so that --trial-id rebuilds such a trial as it trained, whatever today's defaults)
+SCHEME_BEFORE_0_2_0: dict[str, Any] = dict(policy_delay=1, target_policy_noise=0.0)
 
 
 def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
@@ -29,7 +34,9 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     ``batch_size``, ``net_arch`` name -> ``policy_kwargs``, ``train_freq`` -> also ``gradient_steps`` (one gradient
     step per env-step, as in the Zoo's TD3 sampler), ``confidence_lr`` -> ``confidence_kwargs=dict(lr=...)`` (the
     adaptive confidence's learning rate), ``noise_std`` -> also ``noise_type="decaying_normal"`` (the RL Zoo's noise
-    keys: the Zoo builds a constant :class:`sb3_soup.DecayingNormalActionNoise` from them, as SOUP's default is).
+    keys: the Zoo builds a constant :class:`sb3_soup.DecayingNormalActionNoise` from them, as SOUP's default is). A
+    trial without ``policy_delay`` and ``target_policy_noise`` (sampled before 0.2.0) trained without delay and
+    smoothing (:data:`SCHEME_BEFORE_0_2_0`): it is rebuilt so.
 
     :param sampled_params: the values of one trial (``trial.params``)
     :return: keyword arguments for ``SOUP``
@@ -47,6 +54,8 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
         hyperparams["confidence_kwargs"] = dict(lr=hyperparams.pop("confidence_lr"))
     if "noise_std" in hyperparams:  # the Zoo's keys (as --trial-id passes them on): a constant decaying_normal noise
         hyperparams["noise_type"] = DECAYING_NORMAL
+    if "train_heads" in hyperparams:  # a trial of the scheme's search space: its delay and smoothing are stated
+        hyperparams = {**SCHEME_BEFORE_0_2_0, **hyperparams}
     return hyperparams
 
 
@@ -54,7 +63,8 @@ def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args:
     """
     Sample SOUP hyper-parameters: the DDPG ones (actor and critic learning rates, batch size, tau, gamma, train
     frequency, network sizes) and the ensemble's (number of heads, bootstrap mask probability, training scheme and
-    targets, confidence strategy and the adaptive confidence network's learning rate, exploration noise).
+    targets, TD3's delay and target smoothing, confidence strategy and the adaptive confidence network's learning
+    rate, exploration noise).
 
     :param trial: the optuna trial
     :param n_actions: size of the action space (of the exploration noise)
@@ -76,6 +86,8 @@ def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args:
         "noise_std": trial.suggest_float("noise_std", 0.05, 0.5),
         "train_heads": trial.suggest_categorical("train_heads", list(TRAIN_HEADS)),
         "target_q": trial.suggest_categorical("target_q", list(TARGET_Q)),
+        "policy_delay": trial.suggest_categorical("policy_delay", list(POLICY_DELAYS)),
+        "target_policy_noise": trial.suggest_categorical("target_policy_noise", list(TARGET_POLICY_NOISES)),
         "confidence": trial.suggest_categorical("confidence", list(CONFIDENCES)),
     }
     if params["confidence"] == "adaptive":

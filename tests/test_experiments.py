@@ -333,6 +333,10 @@ def test_every_suite_variant_builds_the_model_it_names():
                 default = SOUP("MlpPolicy", env, _init_setup_model=False)
                 expected[name] = (default.n_actor_heads, default.n_critic_heads, default.confidence, default.mask_prob < 1)
             assert settings == expected[name], (suite, name)
+            # the paper's family trains with the paper's update; SOUP's defaults with theirs
+            scheme = (model.train_heads, model.target_q, model.policy_delay, model.target_policy_noise)
+            paper_scheme, default_scheme = ("active", "own", 1, 0.0), ("all", "min_pair", 2, 0.2)
+            assert scheme == (paper_scheme if VARIANTS[spec.variant].source == "paper" else default_scheme), (suite, name)
             # the paper's decaying noise (soup_paper.yml's noise_type 'decaying_normal'), or SOUP's default N(0, 0.1)
             noise, paper = model.action_noise, VARIANTS[spec.variant].source == "paper"
             assert isinstance(noise, DecayingNormalActionNoise), (suite, name)

@@ -157,10 +157,10 @@ def test_a_development_save_format_of_this_version_is_refused(saved, tmp_path):
     "kwargs",
     [
         dict(preset="ma_bddpg", n_heads=3, mask_prob=0.7),
-        dict(preset="dbddpg", n_heads=4, train_heads="all"),
+        dict(preset="dbddpg", n_heads=4, train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0),
         dict(n_heads=2, confidence="fixed", confidence_kwargs=dict(alpha=0.8)),
     ],
-    ids=["ma_bddpg-3", "dbddpg-4", "fixed-2"],
+    ids=["ma_bddpg-3", "dbddpg-4-paper-scheme", "fixed-2"],
 )
 def test_other_head_counts_and_presets_load_as_saved(tmp_path, kwargs):
     model = SOUP("MlpPolicy", "Pendulum-v1", seed=1, **SMALL, **kwargs)
@@ -176,6 +176,9 @@ def test_other_head_counts_and_presets_load_as_saved(tmp_path, kwargs):
         "confidence_kwargs",
         "mask_prob",
         "train_heads",
+        "target_q",
+        "policy_delay",
+        "target_policy_noise",
     ):
         assert getattr(loaded, name) == getattr(model, name), name
     assert type(loaded.policy.confidence) is type(model.policy.confidence)
@@ -193,8 +196,8 @@ def test_load_refuses_to_change_the_structure_and_checks_other_settings(saved):
         SOUP.load(saved / "model.zip", confidence_kwargs=dict(lr=1e-3))
     with pytest.raises(ValueError, match=re.escape("train_heads must be one of ('active', 'all', 'all_critics')")):
         SOUP.load(saved / "model.zip", train_heads="every")
-    loaded = SOUP.load(saved / "model.zip", learning_starts=np.int64(5), train_heads="all")
-    assert loaded.learning_starts == 5 and loaded.train_heads == "all"  # learning_starts is SB3's: taken as SB3 takes it
+    loaded = SOUP.load(saved / "model.zip", learning_starts=np.int64(5), train_heads="active")
+    assert loaded.learning_starts == 5 and loaded.train_heads == "active"  # learning_starts is SB3's: taken as SB3 takes it
 
 
 def test_load_seeds_the_random_generators_as_sb3_does(saved):

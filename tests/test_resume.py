@@ -161,11 +161,16 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
 # ---------------------------------------------------------------- save, load, continue == uninterrupted (default suite)
 
 
-def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path):
-    """Two envs, all-heads training, decayed confidence; SB3's way of resuming (same files) gives another run."""
+@pytest.mark.parametrize(
+    "scheme",
+    [dict(train_heads="all"), dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)],
+    ids=["every-pair", "paper-active-pair"],  # the active pair: each env's pair, drawn per episode, taken in turn
+)
+def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path, scheme):
+    """Two envs, decayed confidence; SB3's way of resuming (same files) gives another run."""
     kwargs = dict(
         n_heads=3,
-        train_heads="all",
+        **scheme,
         confidence="decayed",
         confidence_kwargs=dict(decay=0.99),
         learning_starts=30,

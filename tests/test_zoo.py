@@ -264,11 +264,21 @@ def test_sampled_hyperparameters_build_soup():
         assert 64 <= kwargs["batch_size"] <= 1024 and 0.97 <= kwargs["gamma"] < 1
         assert kwargs["gradient_steps"] == kwargs["train_freq"]
         assert ("confidence_kwargs" in kwargs) == (kwargs["confidence"] == "adaptive")
+        assert kwargs["policy_delay"] in (1, 2) and kwargs["target_policy_noise"] in (0.0, 0.2)
         seen.add(kwargs["confidence"])
         model = SOUP(env=ENV_ID, policy="MlpPolicy", buffer_size=1000, **converted)
         assert model.policy is not None
         study.tell(trial, 0.0)
     assert len(seen) > 1
+
+
+def test_a_trial_sampled_before_the_delay_and_smoothing_joined_the_space_is_rebuilt_as_it_trained():
+    from sb3_soup.zoo_hyperparams import convert_soup_params
+
+    old_trial = dict(train_heads="all", target_q="min_pair", n_heads=5)  # before 0.2.0: no delay, no smoothing
+    assert convert_soup_params(old_trial) == dict(old_trial, policy_delay=1, target_policy_noise=0.0)
+    new_trial = dict(old_trial, policy_delay=2, target_policy_noise=0.2)
+    assert convert_soup_params(new_trial) == new_trial
 
 
 def test_installed_distribution_ships_the_pth_file():

@@ -8,8 +8,8 @@ Command line of the experiment runner.
     python -m sb3_soup.experiments report runs/hopper --suite confidence
     python -m sb3_soup.experiments trap runs/hopper --suite models
     python -m sb3_soup.experiments screen run --root runs/screen --models td3_zoo,ddpg_zoo,sac_zoo,soup_defaults
-    python -m sb3_soup.experiments screen run --root runs/screen --name soup_allcritics_d2 --seeds 3 \
-        --hyperparams train_heads=all_critics policy_delay=2
+    python -m sb3_soup.experiments screen run --root runs/screen --name soup_mask1_k10 --seeds 3 \
+        --hyperparams mask_prob=1.0 n_heads=10
     python -m sb3_soup.experiments screen report runs/screen --partial --to runs/screen-report
 
 Suites run into the same folder share the runs they have in common (the confidence suite's ``none`` and ``adaptive``
