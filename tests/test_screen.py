@@ -224,6 +224,21 @@ def test_report_normalises_per_task_and_aggregates_complete_models(hand_made, tm
     assert json.loads((tmp_path / "report" / "screen.json").read_text())["aggregate"]["ddpg_zoo"]["runs"] == 4
 
 
+def test_seeds_narrow_every_models_tables_and_curves_but_the_reference_keeps_every_run(hand_made, tmp_path):
+    tasks = ["Pendulum-v1", "Hopper-v4"]
+    data = screen.screen_report(hand_made, tmp_path / "report", tasks=tasks, seeds=[0], reps=REPS)
+    assert data["references"]["Hopper-v4"] == {"mean": 1000.0, "runs": 2, "complete": True}  # TD3's seeds 0 and 1
+    assert data["runs"]["ddpg_zoo"]["Hopper-v4"]["scores"] == {"0": 500.0}  # seed 1 (300) is left out
+    # DDPG's seed 0: Pendulum -600 (0.5), Hopper 500 (0.5), in the per-task table as in the aggregate's worst task
+    text = (tmp_path / "report" / "screen.md").read_text()
+    assert "| DDPG (RL Zoo) | 0.50 | 0.50 |" in text and "| DDPG (RL Zoo) | 1/1 | 500.0 ± 0.0 | 0: 500.0 | 0.50 |" in text
+    assert data["aggregate"]["ddpg_zoo"]["worst_task"]["normalised"] == pytest.approx(0.5)
+    hopper = {
+        model["label"]: model for model in json.loads((tmp_path / "report" / "curves.json").read_text())["Hopper-v4"]["models"]
+    }
+    assert hopper["DDPG (RL Zoo)"]["iqm"] == [-5000.0, 500.0]
+
+
 def test_report_draws_each_tasks_learning_curves_from_the_scored_runs(hand_made, tmp_path):
     data = screen.screen_report(hand_made, tmp_path / "report", tasks=["Pendulum-v1", "Hopper-v4"], reps=REPS)
     assert {"curves.png", "curves.json"} <= set(data["files"]) and (tmp_path / "report" / "curves.png").stat().st_size

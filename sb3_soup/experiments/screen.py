@@ -175,12 +175,15 @@ class Cell:
     :param expected: the seeds the model should have
     :param notes: seed -> why it has no score (not started, running at step s, failed, off the task's protocol...)
     :param run_dirs: seed -> the folder of the run that has its score
+    :param others: seed -> final score of the runs of other seeds than ``expected`` (``--seeds`` narrowed them out):
+        left out of the model's tables, curves and aggregate; the reference model's count in the task's reference
     """
 
     scores: dict[int, float]
     expected: list[int]
     notes: dict[int, str]
     run_dirs: dict[int, str] = dataclasses.field(default_factory=dict)
+    others: dict[int, float] = dataclasses.field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -235,7 +238,9 @@ def collect_screen(
             for record in runs.get(task.env_id, []):
                 differs = off_protocol(record, task)
                 score = None if differs else final_score(record)
-                if score is not None:
+                if score is not None and record.spec.seed not in expected:
+                    cell.others[record.spec.seed] = score
+                elif score is not None:
                     cell.scores[record.spec.seed] = score
                     cell.run_dirs[record.spec.seed] = record.spec.run_dir
                 elif record.spec.seed in expected:
@@ -395,9 +400,9 @@ def screen_report(
     randoms = random_scores([task.env_id for task in suite], [root, target], target, episodes=random_episodes)
     references = {}
     for env_id, cell in cells.get(SCREEN_REFERENCE, {}).items():
-        if cell.scores:
-            references[env_id] = {"mean": float(np.mean(list(cell.scores.values()))), "runs": len(cell.scores),
-                                  "complete": cell.complete}  # fmt: skip
+        scores = [*cell.scores.values(), *cell.others.values()]  # every run of the reference, whatever --seeds
+        if scores:
+            references[env_id] = {"mean": float(np.mean(scores)), "runs": len(scores), "complete": cell.complete}
     screen = Screen(root, suite, order, labels, cells, randoms, references)
     aggregate, matrices = aggregate_screen(screen, partial, reps)
     figures = _figures(target, screen, aggregate, matrices, reps) + _curve_figure(target, screen, max(1, reps // 20))
