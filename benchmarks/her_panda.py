@@ -57,7 +57,9 @@ def make_model(algo: str, env: Any, seed: int) -> Any:
 
 def scheme(model: Any) -> dict[str, Any]:
     """SOUP's training scheme, which its defaults set (recorded: the defaults changed in 0.2.0)."""
-    return {name: getattr(model, name) for name in ("train_heads", "target_q", "policy_delay", "target_policy_noise")}
+    from sb3_soup.presets import PAPER_UPDATE
+
+    return {name: getattr(model, name) for name in PAPER_UPDATE}
 
 
 def run(algo: str, seed: int, timesteps: int, eval_freq: int, eval_episodes: int) -> dict[str, Any]:

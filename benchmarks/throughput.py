@@ -41,6 +41,8 @@ import sys
 import time
 from typing import Any
 
+from sb3_soup.presets import PAPER_UPDATE
+
 ENV_ID = "Hopper-v4"
 # Hopper-v4: 11-dimensional observations, 3-dimensional actions
 OBS_DIM, ACT_DIM = 11, 3
@@ -57,7 +59,7 @@ def _single_thread() -> None:
 
 
 # What a SOUP row trains besides K and its confidence (the paper's update, unless a row says otherwise)
-PAPER_SCHEME: dict[str, Any] = dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)
+PAPER_SCHEME: dict[str, Any] = PAPER_UPDATE
 
 
 def soup_defaults() -> dict[str, Any]:

@@ -32,6 +32,10 @@ DEFAULT_CONFIDENCE = "adaptive"
 DEFAULT_MASK_PROB = 0.5
 
 
+PAPER_UPDATE: dict[str, Any] = dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)
+"""The paper's update (Algorithm 1): the episode's head pair, each critic head on its own target, no delayed or smoothed
+updates; SOUP's training-scheme arguments as :func:`paper_settings` sets them (the defaults differ since 0.2.0)."""
+
 PAPER_NOISE: dict[str, Any] = dict(noise_type="decaying_normal", noise_std=0.2, noise_decay=0.999995, noise_std_min=0.05)
 """The paper mode's exploration noise in the RL Zoo's keys (``hyperparams/soup_paper.yml``'s): Gaussian, of std 0.2 in
 the [-1, 1] action scale decayed by 0.999995 per step down to 0.05 (a :class:`sb3_soup.DecayingNormalActionNoise`)."""
@@ -50,10 +54,7 @@ def paper_hyperparams() -> dict[str, Any]:
         batch_size=1024,
         tau=1e-3,
         gamma=0.99,
-        train_heads="active",
-        target_q="own",
-        policy_delay=1,
-        target_policy_noise=0.0,
+        **PAPER_UPDATE,
         **PAPER_NOISE,
         policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
     )

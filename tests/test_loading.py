@@ -18,6 +18,7 @@ from stable_baselines3.common.utils import set_random_seed
 
 from sb3_soup import SOUP, __version__
 from sb3_soup.loading import SAVE_FORMAT_VERSION
+from sb3_soup.presets import PAPER_UPDATE
 
 TINY = dict(net_arch=dict(pi_body=[8], pi_head=[8], qf_body=[8, 8], qf_head=[8]))
 SMALL = dict(learning_starts=20, batch_size=16, buffer_size=300, policy_kwargs=TINY)
@@ -157,7 +158,7 @@ def test_a_development_save_format_of_this_version_is_refused(saved, tmp_path):
     "kwargs",
     [
         dict(preset="ma_bddpg", n_heads=3, mask_prob=0.7),
-        dict(preset="dbddpg", n_heads=4, train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0),
+        dict(preset="dbddpg", n_heads=4, **PAPER_UPDATE),
         dict(n_heads=2, confidence="fixed", confidence_kwargs=dict(alpha=0.8)),
     ],
     ids=["ma_bddpg-3", "dbddpg-4-paper-scheme", "fixed-2"],

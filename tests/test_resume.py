@@ -35,6 +35,7 @@ from sb3_soup.checkpoint import (
     save_training_state,
     set_env_state,
 )
+from sb3_soup.presets import PAPER_UPDATE
 
 SCRIPT = Path(__file__).with_name("resume_run.py")
 
@@ -163,7 +164,7 @@ def test_a_run_killed_with_sigkill_resumes_from_its_last_checkpoint(tmp_path):
 
 @pytest.mark.parametrize(
     "scheme",
-    [dict(train_heads="all"), dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)],
+    [dict(train_heads="all"), PAPER_UPDATE],
     ids=["every-pair", "paper-active-pair"],  # the active pair: each env's pair, drawn per episode, taken in turn
 )
 def test_resuming_from_a_checkpoint_gives_the_uninterrupted_run(tmp_path, scheme):

@@ -14,16 +14,14 @@ from stable_baselines3.common.logger import Logger
 
 from sb3_soup import SOUP, DecayingNormalActionNoise, paper_settings
 from sb3_soup.buffers import BootstrappedReplayBufferSamples
+from sb3_soup.presets import PAPER_UPDATE
 
 BATCH = 16
 
 
-# The paper's update (Algorithm 1): what each test changes one setting of, unless it says otherwise
-PAPER_SCHEME = dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)
-
-
 def _model(**kwargs) -> SOUP:
-    kwargs = {"n_heads": 3, **PAPER_SCHEME, **kwargs}
+    """The paper's update (Algorithm 1): what each test changes one setting of, unless it says otherwise."""
+    kwargs = {"n_heads": 3, **PAPER_UPDATE, **kwargs}
     return SOUP("MlpPolicy", "Pendulum-v1", learning_starts=0, batch_size=BATCH, seed=0, **kwargs)
 
 
