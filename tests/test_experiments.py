@@ -259,10 +259,23 @@ def test_grid_suites_and_overrides(tmp_path):
     specs = build_grid("Pendulum-v1", tmp_path, models=["soup", "td3"], seeds=[0], timesteps=100, overrides=overrides)
     assert specs[0].hyperparams["batch_size"] == 64 and specs[0].hyperparams["tau"] == 0.01
     assert specs[1].hyperparams["batch_size"] == 64 and specs[1].hyperparams["learning_rate"] == 1e-3
-    assert parse_seeds("3") == [0, 1, 2] and parse_seeds("4,7") == [4, 7]
+    assert parse_seeds("3") == [0, 1, 2] and parse_seeds("4,7") == [4, 7] and parse_seeds("0,") == [0]
     with pytest.raises(ValueError, match="Unknown model"):
         build_grid("Pendulum-v1", tmp_path, models=["nope"])
     assert set(VARIANTS) >= {"ddpg", "ma_bddpg", "multi_ddpg", "dbddpg", "soup", "td3", "none", "fixed", "decayed", "adaptive"}
+
+
+@pytest.mark.parametrize("text", ["0", "-2", ",", "1,-1", "2,2", "x"])
+def test_seeds_that_select_no_run_or_collide_are_refused_with_the_accepted_forms(text):
+    # "--seeds 0" is a count of none (seed 0 alone is "0,"): it used to select no run and crash the report
+    with pytest.raises(ValueError, match=r"seeds=.*a count of at least 1 .* or a comma-separated list"):
+        parse_seeds(text)
+
+
+def test_seeds_errors_reach_the_command_line(capsys):
+    with pytest.raises(SystemExit):
+        main(["screen", "report", "runs/screen", "--seeds", "0"])
+    assert "for seed 0 alone write 0," in capsys.readouterr().err
 
 
 def test_benchmark_suite_runs_what_peers_publish(tmp_path):

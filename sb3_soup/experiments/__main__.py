@@ -49,6 +49,14 @@ def _ints(text: str) -> list[int]:
     return [int(part) for part in _csv(text)]
 
 
+def _seeds(text: str) -> list[int]:
+    """``parse_seeds`` for argparse, which shows an ``ArgumentTypeError``'s message (a ``ValueError``'s it replaces)."""
+    try:
+        return parse_seeds(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
 def make_parser() -> argparse.ArgumentParser:
     """:return: the parser of ``run``, ``report``, ``trap`` and ``screen``"""
     parser = argparse.ArgumentParser(
@@ -68,7 +76,7 @@ def make_parser() -> argparse.ArgumentParser:
     )
     run.add_argument(
         "--seeds",
-        type=parse_seeds,
+        type=_seeds,
         help="a count (3 -> 0,1,2) or a list (1,5), for every model (default: 3 each; the benchmark suite: 5 for "
         "soup_defaults and td3_zoo)",
     )
@@ -187,7 +195,7 @@ def _add_screen_parser(commands: Any) -> None:
     )
     run.add_argument("--only", type=_csv, help="with --candidates: these candidates only, comma-separated, in this order")
     run.add_argument(
-        "--seeds", type=parse_seeds, default=list(range(SCREEN_SEEDS)), help=f"a count or a list (default: {SCREEN_SEEDS})"
+        "--seeds", type=_seeds, default=list(range(SCREEN_SEEDS)), help=f"a count or a list (default: {SCREEN_SEEDS})"
     )
     run.add_argument("--tasks", type=_csv, help="narrow the suite to these env ids, comma-separated")
     _add_training_options(
@@ -207,7 +215,7 @@ def _add_screen_parser(commands: Any) -> None:
     report.add_argument("--tasks", type=_csv, help="narrow the suite to these env ids, comma-separated")
     report.add_argument("--models", type=_csv, help="report these models only (folder names), comma-separated")
     report.add_argument(
-        "--seeds", type=parse_seeds, help="the seeds every model should have (default: per model, those it has on any task)"
+        "--seeds", type=_seeds, help="the seeds every model should have (default: per model, those it has on any task)"
     )
     report.add_argument("--reps", type=int, default=10_000, help="bootstrap resamples of the intervals (default: 10000)")
 

@@ -338,12 +338,21 @@ def read_candidates(path: str | os.PathLike, only: Sequence[str] | None = None) 
 
 def parse_seeds(text: str) -> list[int]:
     """
-    :param text: a count (``"3"`` -> seeds 0, 1, 2) or a comma-separated list (``"1,5"``)
+    :param text: a count (``"3"`` -> seeds 0, 1, 2) or a comma-separated list (``"1,5"``; one seed: ``"0,"``)
     :return: the seeds
+    :raises ValueError: for a count below 1, an empty list, a negative or repeated seed, or text of neither form
     """
-    if "," in text:
-        return [int(part) for part in text.split(",") if part.strip()]
-    return list(range(int(text)))
+    accepted = (
+        "a count of at least 1 (3 -> seeds 0, 1, 2) or a comma-separated list of distinct seeds >= 0 "
+        "(1,5; for seed 0 alone write 0,)"
+    )
+    try:
+        seeds = [int(part) for part in text.split(",") if part.strip()] if "," in text else list(range(int(text)))
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0 or len(set(seeds)) < len(seeds):
+        raise ValueError(f"seeds={text!r}: expected {accepted}")
+    return seeds
 
 
 def _format(value: Any, n_heads: int | None) -> Any:
