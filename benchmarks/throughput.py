@@ -41,8 +41,6 @@ import sys
 import time
 from typing import Any
 
-from sb3_soup.presets import PAPER_UPDATE
-
 ENV_ID = "Hopper-v4"
 # Hopper-v4: 11-dimensional observations, 3-dimensional actions
 OBS_DIM, ACT_DIM = 11, 3
@@ -58,8 +56,10 @@ def _single_thread() -> None:
         os.environ[var] = "1"
 
 
-# What a SOUP row trains besides K and its confidence (the paper's update, unless a row says otherwise)
-PAPER_SCHEME: dict[str, Any] = PAPER_UPDATE
+# What a SOUP row trains besides K and its confidence (the paper's update, unless a row says otherwise):
+# sb3_soup.presets.PAPER_UPDATE (tests/test_benchmark.py checks it), written out because a --before child imports
+# another checkout's sb3_soup, which may predate that constant (and sb3_soup imports torch, after _single_thread)
+PAPER_SCHEME: dict[str, Any] = dict(train_heads="active", target_q="own", policy_delay=1, target_policy_noise=0.0)
 
 
 def soup_defaults() -> dict[str, Any]:

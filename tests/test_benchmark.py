@@ -10,6 +10,8 @@ import sys
 
 import pytest
 
+from sb3_soup.presets import PAPER_UPDATE
+
 SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
 
 
@@ -41,6 +43,7 @@ def test_flop_counts():
     all_pairs = dict(soup, n_heads=5, batch_size=256)
     cheaper = dict(all_pairs, defaults=True)
     paper = bench.PAPER_SCHEME
+    assert paper == PAPER_UPDATE  # the script's copy (a --before checkout may lack the constant)
     bench.soup_defaults = lambda: dict(paper, train_heads="all", policy_delay=2, confidence="adaptive")
     assert 0.7 < bench.train_flops(cheaper) / bench.train_flops(all_pairs) < 0.8  # actor every other update
     bench.soup_defaults = lambda: dict(paper, train_heads="all", target_q="min_pair", confidence="adaptive")
