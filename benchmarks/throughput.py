@@ -11,6 +11,9 @@ Measured per configuration (Hopper-v4, ``train_freq=1``, ``gradient_steps=1``):
 
 - ``steps_per_s``: env-steps per second while training (after ``learning_starts`` and a few warm-up updates),
   over a time window;
+- ``step_ms``, ``act_ms``, ``train_ms``, ``confidence_ms``: where an env-step's time goes over that window: in all,
+  in choosing the action (``_sample_action``: SOUP's E-action, SB3's actor and noise), in the gradient step
+  (``train``), and within it in SOUP's confidence update (eq. 8; 0 for SB3); the rest is the env, the buffer, callbacks;
 - ``predict_1_ms`` / ``predict_8_ms``: deterministic ``predict`` latency for one observation and for a batch of 8;
 - ``train_gflop``: analytic FLOP count of one gradient step (see :func:`train_flops`);
 - ``peak_rss_mb`` (``--memory`` rows): peak RSS of a process holding a 1e6-transition replay buffer whose arrays are
@@ -283,6 +286,19 @@ def _predict_latency_ms(model: Any, n_obs: int, duration: float) -> float:
     return 1e3 * statistics.median(times)
 
 
+def _timed(method: Any, spent: dict[str, float], part: str, stamps: list[float]) -> Any:
+    """``method``, adding the seconds of each call made while the window is open (``stamps`` begun) to ``spent[part]``."""
+
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        start = time.perf_counter()
+        result = method(*args, **kwargs)
+        if stamps:
+            spent[part] += time.perf_counter() - start
+        return result
+
+    return timed
+
+
 def measure_speed(config: dict[str, Any], device: str, window: float, learning_starts: int, seed: int) -> dict[str, Any]:
     """Train past ``learning_starts`` plus warm-up updates, then count env-steps over ``window`` seconds."""
     from stable_baselines3.common.callbacks import BaseCallback
@@ -303,12 +319,23 @@ def measure_speed(config: dict[str, Any], device: str, window: float, learning_s
             return self.stamps[-1] - self.stamps[0] < window
 
     callback = Window()
+    # where an env-step's time goes: the seconds inside these calls while the window is open
+    spent = {"act": 0.0, "train": 0.0, "confidence": 0.0}
+    timed = [(model, "_sample_action", "act"), (model, "train", "train")]
+    strategy = getattr(model.policy, "confidence", None)  # SOUP's eq. 8 update, inside train
+    if strategy is not None:
+        timed.append((strategy, "update", "confidence"))
+    for owner, method, part in timed:
+        setattr(owner, method, _timed(getattr(owner, method), spent, part, callback.stamps))
     model.learn(total_timesteps=10**9, callback=callback, reset_num_timesteps=False)
     stamps = callback.stamps
-    steps_per_s = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+    n_steps = len(stamps) - 1
+    steps_per_s = n_steps / (stamps[-1] - stamps[0])
     return dict(
         steps_per_s=steps_per_s,
-        n_steps=len(stamps) - 1,
+        n_steps=n_steps,
+        step_ms=1e3 / steps_per_s,
+        **{f"{part}_ms": 1e3 * seconds / n_steps for part, seconds in spent.items()},
         predict_1_ms=_predict_latency_ms(model, 1, duration=min(1.0, window / 4)),
         predict_8_ms=_predict_latency_ms(model, 8, duration=min(1.0, window / 4)),
     )
@@ -380,6 +407,10 @@ def run_child(config: dict[str, Any], args: argparse.Namespace, seed: int, memor
     return json.loads(lines[-1][len("RESULT ") :])
 
 
+BREAKDOWN = ("step_ms", "act_ms", "train_ms", "confidence_ms")
+"""An env-step's milliseconds: in all, choosing the action, the gradient step, and (SOUP) eq. 8's update within it."""
+
+
 def _median(runs: list[dict[str, Any]], key: str) -> float:
     return float(statistics.median(run[key] for run in runs))
 
@@ -390,7 +421,7 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
         name = config_name(config)
         runs = speed[name]
         row: dict[str, Any] = dict(name=name, config=config, repeats=runs)
-        for key in ("steps_per_s", "predict_1_ms", "predict_8_ms"):
+        for key in ("steps_per_s", "predict_1_ms", "predict_8_ms", *BREAKDOWN):
             row[key] = _median(runs, key)
         row["train_gflop"] = train_flops(config) / 1e9
         row["predict_mflop"] = predict_flops(config) / 1e6
@@ -449,6 +480,15 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             f"{1 / row['flop_ratio']:>7.2f} {row['predict_1_ms']:>9.3f} {row['predict_1_ratio']:>7.2f} "
             f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f} {row['predict_flop_ratio']:>11.1f}"
         )
+    print()
+    print(f"{'ms per env-step':<42} {'in all':>8} {'act':>7} {'train':>7} {'of which eq. 8':>15} {'the rest':>9}")
+    for row in rows:
+        if "steps_per_s" in row:
+            rest = row["step_ms"] - row["act_ms"] - row["train_ms"]  # the env, the buffer, callbacks and logging
+            print(
+                f"{row['name']:<42} {row['step_ms']:>8.2f} {row['act_ms']:>7.2f} {row['train_ms']:>7.2f} "
+                f"{row['confidence_ms']:>15.2f} {rest:>9.2f}"
+            )
     memory_rows = [row for row in rows if "peak_rss_mb" in row]
     if memory_rows:
         print()

@@ -67,6 +67,12 @@ def test_quick_mode_writes_the_table(tmp_path):
     for row in speed_rows:
         for key in ("steps_per_s", "predict_1_ms", "predict_8_ms", "train_gflop", "speed_ratio", "flop_ratio"):
             assert row[key] > 0, key
+        # where an env-step's time goes: acting and the gradient step are parts of it, eq. 8's update a part of the latter
+        assert 0 < row["act_ms"] + row["train_ms"] < row["step_ms"]
+        assert row["step_ms"] == pytest.approx(1e3 / row["steps_per_s"], rel=0.05)
+    ddpg, soup = sorted(speed_rows, key=lambda row: row["name"])
+    assert ddpg["confidence_ms"] == 0 < soup["confidence_ms"] < soup["train_ms"]
+    assert "ms per env-step" in done.stdout
     memory_rows = [row for row in results["rows"] if "peak_rss_mb" in row]
     assert len(memory_rows) == 2
     soup_memory = next(row for row in memory_rows if row["name"].startswith("soup"))
