@@ -1,4 +1,5 @@
-"""Print a SB3 test file with SOUP added wherever TD3 (or DDPG) is listed as an algorithm (see build.sh)."""
+"""Print a SB3 test file with SOUP added wherever TD3 (or DDPG) is listed as an algorithm, or compared with as one
+(``model_class == TD3`` becomes ``model_class in (TD3, SOUP)``: SOUP gets TD3's settings and checks); see build.sh."""
 
 import ast
 import sys
@@ -38,9 +39,21 @@ for node in ast.walk(tree):
                 rest = "".join(", " + ast.get_source_segment(source, e) for e in value.elts[1:])
                 inserts.append((pos(value.end_lineno, value.end_col_offset), f', "soup": (SOUP{rest})'))
                 break
+    elif isinstance(node, ast.Compare) and len(node.ops) == 1 and isinstance(node.ops[0], (ast.Eq, ast.NotEq)):
+        # `model_class == TD3` (TD3's own settings or checks) -> `model_class in (TD3, SOUP)`
+        right = node.comparators[0]
+        if is_algo(right):
+            start = pos(node.left.end_lineno, node.left.end_col_offset)
+            end = pos(right.end_lineno, right.end_col_offset)
+            op = "in" if isinstance(node.ops[0], ast.Eq) else "not in"
+            inserts.append((start, (end, f" {op} ({right.id}, SOUP)")))
 text = source
-for offset, piece in sorted(inserts, reverse=True):
-    text = text[:offset] + piece + text[offset:]
+for offset, piece in sorted(inserts, key=lambda insert: insert[0], reverse=True):
+    if isinstance(piece, tuple):  # a replacement of text[offset:end]
+        end, piece = piece
+        text = text[:offset] + piece + text[end:]
+    else:
+        text = text[:offset] + piece + text[offset:]
 # the import, after the stable_baselines3 import of the algorithms
 out, done = [], False
 for line in text.splitlines(keepends=True):
