@@ -10,7 +10,9 @@ of the ratio to DDPG's run in the same repeat), and the same ratio to SB3's defa
 Measured per configuration (Hopper-v4, ``train_freq=1``, ``gradient_steps=1``):
 
 - ``steps_per_s``: env-steps per second while training (after ``learning_starts`` and a few warm-up updates),
-  over a time window;
+  over a time window; ``cpu_steps_per_s`` the same per second of the process's CPU time (``time.process_time``),
+  which other processes' load on a shared machine does not stretch (``CPU x TD3``, ``cpu_speed_ratio_td3``: the
+  paired ratio to SB3's TD3 by it);
 - ``step_ms``, ``act_ms``, ``train_ms``, ``confidence_ms``: where an env-step's time goes over that window: in all,
   in choosing the action (``_sample_action``: SOUP's E-action, SB3's actor and noise), in the gradient step
   (``train``), and within it in SOUP's confidence update (eq. 8; 0 for SB3); the rest is the env, the buffer, callbacks;
@@ -313,9 +315,11 @@ def measure_speed(config: dict[str, Any], device: str, window: float, learning_s
         def __init__(self) -> None:
             super().__init__()
             self.stamps: list[float] = []
+            self.cpu_stamps: list[float] = []  # the process's CPU time: what other processes' load does not add to
 
         def _on_step(self) -> bool:
             self.stamps.append(time.perf_counter())
+            self.cpu_stamps.append(time.process_time())
             return self.stamps[-1] - self.stamps[0] < window
 
     callback = Window()
@@ -333,6 +337,7 @@ def measure_speed(config: dict[str, Any], device: str, window: float, learning_s
     steps_per_s = n_steps / (stamps[-1] - stamps[0])
     return dict(
         steps_per_s=steps_per_s,
+        cpu_steps_per_s=n_steps / (callback.cpu_stamps[-1] - callback.cpu_stamps[0]),
         n_steps=n_steps,
         step_ms=1e3 / steps_per_s,
         **{f"{part}_ms": 1e3 * seconds / n_steps for part, seconds in spent.items()},
@@ -421,7 +426,7 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
         name = config_name(config)
         runs = speed[name]
         row: dict[str, Any] = dict(name=name, config=config, repeats=runs)
-        for key in ("steps_per_s", "predict_1_ms", "predict_8_ms", *BREAKDOWN):
+        for key in ("steps_per_s", "cpu_steps_per_s", "predict_1_ms", "predict_8_ms", *BREAKDOWN):
             row[key] = _median(runs, key)
         row["train_gflop"] = train_flops(config) / 1e9
         row["predict_mflop"] = predict_flops(config) / 1e6
@@ -442,8 +447,10 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
         row["flop_ratio"] = row["train_gflop"] / ddpg["train_gflop"]  # > 1: more arithmetic than DDPG per update
         td3 = next((r for r in rows if r["config"]["algo"] == "td3-sb3" and r["config"]["batch_size"] == batch_size), None)
         if td3 is not None:  # the same pairing against SB3's default TD3's run of each repeat
-            ratios = [run["steps_per_s"] / base["steps_per_s"] for run, base in zip(row["repeats"], td3["repeats"])]
-            row["speed_ratio_td3"] = float(statistics.median(ratios))
+            for key, ratio_key in (("steps_per_s", "speed_ratio_td3"), ("cpu_steps_per_s", "cpu_speed_ratio_td3")):
+                ratios = [run[key] / base[key] for run, base in zip(row["repeats"], td3["repeats"])]
+                row[ratio_key] = float(statistics.median(ratios))
+                row[ratio_key + "_per_repeat"] = ratios
         row["predict_flop_ratio"] = row["predict_mflop"] / ddpg["predict_mflop"]
     memory_rows = []
     for name, runs in memory.items():
@@ -466,7 +473,7 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     header = (
-        f"{'configuration':<42} {'steps/s':>8} {'x DDPG':>7} {'x TD3':>6} {'FLOP x':>7} {'1/FLOPx':>7} "
+        f"{'configuration':<42} {'steps/s':>8} {'x DDPG':>7} {'x TD3':>6} {'CPU x TD3':>9} {'FLOP x':>7} {'1/FLOPx':>7} "
         f"{'pred1 ms':>9} {'x DDPG':>7} {'pred8 ms':>9} {'x DDPG':>7} {'pred FLOP x':>11}"
     )
     print(header)
@@ -476,7 +483,8 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             continue
         print(
             f"{row['name']:<42} {row['steps_per_s']:>8.1f} {row['speed_ratio']:>7.2f} "
-            f"{row.get('speed_ratio_td3', float('nan')):>6.2f} {row['flop_ratio']:>7.2f} "
+            f"{row.get('speed_ratio_td3', float('nan')):>6.2f} {row.get('cpu_speed_ratio_td3', float('nan')):>9.2f} "
+            f"{row['flop_ratio']:>7.2f} "
             f"{1 / row['flop_ratio']:>7.2f} {row['predict_1_ms']:>9.3f} {row['predict_1_ratio']:>7.2f} "
             f"{row['predict_8_ms']:>9.3f} {row['predict_8_ratio']:>7.2f} {row['predict_flop_ratio']:>11.1f}"
         )

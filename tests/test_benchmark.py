@@ -70,6 +70,8 @@ def test_quick_mode_writes_the_table(tmp_path):
         # where an env-step's time goes: acting and the gradient step are parts of it, eq. 8's update a part of the latter
         assert 0 < row["act_ms"] + row["train_ms"] < row["step_ms"]
         assert row["step_ms"] == pytest.approx(1e3 / row["steps_per_s"], rel=0.05)
+        # one thread: the process's CPU time over the window is at most its wall time (less where others took the core)
+        assert row["cpu_steps_per_s"] >= 0.95 * row["steps_per_s"]
     ddpg, soup = sorted(speed_rows, key=lambda row: row["name"])
     assert ddpg["confidence_ms"] == 0 < soup["confidence_ms"] < soup["train_ms"]
     assert "ms per env-step" in done.stdout
