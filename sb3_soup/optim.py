@@ -11,6 +11,10 @@ from collections.abc import Iterable
 from typing import Any
 
 import torch as th
+from torch.utils._foreach_utils import _get_fused_kernels_supported_devices
+
+# The devices with torch's fused Adam kernel (``torch._fused_adam_``, which ``torch.optim.Adam(fused=True)`` runs)
+FUSED_DEVICES = tuple(_get_fused_kernels_supported_devices())
 
 
 class EnsembleAdam(th.optim.Optimizer):
@@ -80,42 +84,48 @@ class EnsembleAdam(th.optim.Optimizer):
 
     def _adam_update_rows(self, group: dict[str, Any], params: list[th.Tensor], rows: Any) -> None:
         """
-        The update of every parameter of ``group`` at once (``torch._foreach_*`` ops: a few kernels for the whole
-        group instead of a dozen per parameter), on the rows ``rows`` (one head, or ``...`` for all): the same
-        arithmetic as :meth:`_adam_update` without a row mask.
+        The update of every parameter of ``group`` at once, on the rows ``rows`` (one head, or ``...`` for all), by
+        torch's fused Adam kernel (the one ``torch.optim.Adam(fused=True)`` runs: one pass over all the tensors,
+        where a ``torch.optim.Adam`` without it takes a dozen kernels per parameter): a head-batched parameter goes to
+        it one head's row at a time, each row with its head's step count. The arithmetic of :meth:`_adam_update`
+        without a row mask, which updates the parameters one by one on devices without the kernel.
         """
         if not params:
             return
-        beta1, beta2 = group["betas"]
-        states = [self._state(group, param) for param in params]
-        values = [param[rows] for param in params]
-        grads = [param.grad[rows] for param in params]  # type: ignore[index]
-        exp_avgs = [state["exp_avg"][rows] for state in states]
-        exp_avg_sqs = [state["exp_avg_sq"][rows] for state in states]
-        n_steps = [state["n_steps"][rows] for state in states]
-        if group["weight_decay"] != 0:
-            grads = list(th._foreach_add(grads, values, alpha=group["weight_decay"]))
+        if params[0].device.type not in FUSED_DEVICES:
+            for param in params:
+                self._adam_update(group, param, rows, None)
+            return
+        # [values, grads, exp_avgs, exp_avg_sqs, n_steps]: per head row of a head-batched parameter, else whole
+        lists: list[list[th.Tensor]] = [[], [], [], [], []]
+        for param in params:
+            state = self._state(group, param)
+            tensors = (param, param.grad, state["exp_avg"], state["exp_avg_sq"], state["n_steps"])
+            for pieces, tensor in zip(lists, tensors):
+                if not group["heads"]:
+                    pieces.append(tensor)  # type: ignore[arg-type]
+                elif rows is ...:
+                    pieces.extend(tensor.unbind(0))  # type: ignore[union-attr]  # K views (in, out), K step counts ()
+                else:
+                    pieces.append(tensor[rows])  # type: ignore[index]
+        values, grads, exp_avgs, exp_avg_sqs, n_steps = lists
         th._foreach_add_(n_steps, 1)
-        th._foreach_lerp_(exp_avgs, grads, 1 - beta1)
-        th._foreach_mul_(exp_avg_sqs, 1 - (1 - beta2))
-        th._foreach_addcmul_(exp_avg_sqs, grads, grads, value=1 - beta2)
-        # (K, 1, ..., 1): broadcasts a per-head quantity over each head's parameter dims
-        steps = [
-            count.clamp(min=1).reshape(count.shape + (1,) * (value.dim() - count.dim()))
-            for count, value in zip(n_steps, values)
-        ]
-        bias_correction1 = th._foreach_pow(beta1, steps)
-        th._foreach_neg_(bias_correction1)
-        th._foreach_add_(bias_correction1, 1)
-        bias_correction2_sqrt = th._foreach_pow(beta2, steps)
-        th._foreach_neg_(bias_correction2_sqrt)
-        th._foreach_add_(bias_correction2_sqrt, 1)
-        th._foreach_sqrt_(bias_correction2_sqrt)
-        denom = th._foreach_sqrt(exp_avg_sqs)
-        th._foreach_div_(denom, bias_correction2_sqrt)
-        th._foreach_add_(denom, group["eps"])
-        th._foreach_mul_(denom, bias_correction1)
-        th._foreach_addcdiv_(values, exp_avgs, denom, value=-group["lr"])
+        beta1, beta2 = group["betas"]
+        th._fused_adam_(
+            values,
+            grads,
+            exp_avgs,
+            exp_avg_sqs,
+            [],
+            n_steps,
+            lr=group["lr"],
+            beta1=beta1,
+            beta2=beta2,
+            weight_decay=group["weight_decay"],
+            eps=group["eps"],
+            amsgrad=False,
+            maximize=False,
+        )
 
     def _adam_update(self, group: dict[str, Any], param: th.Tensor, rows: Any, row_mask: th.Tensor | None) -> None:
         beta1, beta2 = group["betas"]
