@@ -96,18 +96,19 @@ class EnsembleAdam(th.optim.Optimizer):
             for param in params:
                 self._adam_update(group, param, rows, None)
             return
-        # [values, grads, exp_avgs, exp_avg_sqs, n_steps]: per head row of a head-batched parameter, else whole
-        lists: list[list[th.Tensor]] = [[], [], [], [], []]
+
+        # the kernel's tensors: a body parameter whole; a head-batched one as its K rows (views (in, out), each with
+        # its head's step count ()), or the one row trained
+        def split(tensor: th.Tensor) -> Any:
+            if not group["heads"]:
+                return [tensor]
+            return tensor.unbind(0) if rows is ... else [tensor[rows]]
+
+        lists: list[list[th.Tensor]] = [[], [], [], [], []]  # values, grads, exp_avgs, exp_avg_sqs, n_steps
         for param in params:
             state = self._state(group, param)
-            tensors = (param, param.grad, state["exp_avg"], state["exp_avg_sq"], state["n_steps"])
-            for pieces, tensor in zip(lists, tensors):
-                if not group["heads"]:
-                    pieces.append(tensor)  # type: ignore[arg-type]
-                elif rows is ...:
-                    pieces.extend(tensor.unbind(0))  # type: ignore[union-attr]  # K views (in, out), K step counts ()
-                else:
-                    pieces.append(tensor[rows])  # type: ignore[index]
+            for pieces, tensor in zip(lists, (param, param.grad, state["exp_avg"], state["exp_avg_sq"], state["n_steps"])):
+                pieces.extend(split(tensor))
         values, grads, exp_avgs, exp_avg_sqs, n_steps = lists
         th._foreach_add_(n_steps, 1)
         beta1, beta2 = group["betas"]

@@ -151,8 +151,9 @@ def test_ensemble_adam_is_one_torch_adam_per_head(weight_decay, head):
         for param, ref in zip(heads, heads_ref[k]):
             assert th.equal(param[k], ref)
     _, initial, _ = make_ensemble_adam(weight_decay)
-    for k in range(n_heads):
-        assert th.equal(heads[0][k], initial[0][k]) == (k not in trained)
+    for param, start in zip(heads, initial):
+        for k in range(n_heads):
+            assert th.equal(param[k], start[k]) == (k not in trained)
 
 
 @pytest.mark.parametrize("weight_decay", [0.0, 0.1])

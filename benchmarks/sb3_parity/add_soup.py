@@ -21,23 +21,26 @@ def is_algo(node):
     return isinstance(node, ast.Name) and node.id in ALGOS
 
 
-inserts = []  # (offset, text)
+edits = []  # (start, end, text): text[start:end] becomes text (an insertion where start == end)
 tree = ast.parse(source)
 for node in ast.walk(tree):
     if isinstance(node, (ast.List, ast.Set, ast.Tuple)) and node.elts and all(isinstance(e, ast.Name) for e in node.elts):
         first = next((e for e in node.elts if is_algo(e)), None)
         if first is not None and not any(isinstance(e, ast.Name) and e.id == "SOUP" for e in node.elts):
-            inserts.append((pos(first.end_lineno, first.end_col_offset), ", SOUP"))
+            end = pos(first.end_lineno, first.end_col_offset)
+            edits.append((end, end, ", SOUP"))
     elif isinstance(node, ast.Dict):
         for key, value in zip(node.keys, node.values):
             if is_algo(key):  # {TD3: 400} -> {TD3: 400, SOUP: 400}
                 segment = ast.get_source_segment(source, value)
-                inserts.append((pos(value.end_lineno, value.end_col_offset), f", SOUP: {segment}"))
+                end = pos(value.end_lineno, value.end_col_offset)
+                edits.append((end, end, f", SOUP: {segment}"))
                 break
             if isinstance(value, ast.Tuple) and value.elts and is_algo(value.elts[0]) and isinstance(key, ast.Constant):
                 # {"td3": (TD3, "Pendulum-v1")} -> also {"soup": (SOUP, "Pendulum-v1")}
                 rest = "".join(", " + ast.get_source_segment(source, e) for e in value.elts[1:])
-                inserts.append((pos(value.end_lineno, value.end_col_offset), f', "soup": (SOUP{rest})'))
+                end = pos(value.end_lineno, value.end_col_offset)
+                edits.append((end, end, f', "soup": (SOUP{rest})'))
                 break
     elif isinstance(node, ast.Compare) and len(node.ops) == 1 and isinstance(node.ops[0], (ast.Eq, ast.NotEq)):
         # `model_class == TD3` (TD3's own settings or checks) -> `model_class in (TD3, SOUP)`
@@ -46,14 +49,10 @@ for node in ast.walk(tree):
             start = pos(node.left.end_lineno, node.left.end_col_offset)
             end = pos(right.end_lineno, right.end_col_offset)
             op = "in" if isinstance(node.ops[0], ast.Eq) else "not in"
-            inserts.append((start, (end, f" {op} ({right.id}, SOUP)")))
+            edits.append((start, end, f" {op} ({right.id}, SOUP)"))
 text = source
-for offset, piece in sorted(inserts, key=lambda insert: insert[0], reverse=True):
-    if isinstance(piece, tuple):  # a replacement of text[offset:end]
-        end, piece = piece
-        text = text[:offset] + piece + text[end:]
-    else:
-        text = text[:offset] + piece + text[offset:]
+for start, end, piece in sorted(edits, reverse=True):
+    text = text[:start] + piece + text[end:]
 # the import, after the stable_baselines3 import of the algorithms
 out, done = [], False
 for line in text.splitlines(keepends=True):
