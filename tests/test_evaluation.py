@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from sb3_soup.experiments import evaluation, logs
+from sb3_soup.experiments.__main__ import main
 from sb3_soup.experiments.grid import build_grid
 from sb3_soup.experiments.report import make_report
 from sb3_soup.experiments.runner import DONE_FILE, STATUS_FILE, evaluation_seed
@@ -101,3 +102,34 @@ def test_an_unfinished_run_joins_the_evaluation_at_the_steps_it_reached(tmp_path
     at = {step: data["Hopper-v4"] for step, data in at.items()}
     assert at[10]["models"]["ddpg_zoo"]["scores"] == [100.0, 300.0]
     assert at[20]["models"]["ddpg_zoo"]["scores"] == [200.0] and at[20]["models"]["ddpg_zoo"]["seeds"] == [0]
+
+
+def test_a_score_can_average_the_last_evaluations_up_to_the_step(tmp_path, capsys):
+    """``--eval-last N``: a run's score is the mean of its last N evaluations up to the step, not the step's alone."""
+    out = tmp_path / "runs"
+    specs = build_grid("Hopper-v4", out, suite="benchmark", models=["ddpg_zoo", "td3_zoo"], seeds=[0, 1], timesteps=40)
+    for spec in specs:
+        base = 1000.0 if spec.model == "td3_zoo" else 0.0
+        _evaluated_run(spec, {10: base + 10.0, 20: base + 20.0 + spec.seed, 30: base + 60.0, 40: base + 100.0})
+    hopper = make_report(out, suite="benchmark", eval_last=3, bootstrap_reps=REPS)["evaluation"]["Hopper-v4"]
+    assert hopper["step"] == 40 and hopper["steps_averaged"] == [20, 30, 40]
+    assert hopper["models"]["td3_zoo"]["scores"] == [1060.0, pytest.approx(1060.0 + 1 / 3)]  # (20 + s + 60 + 100) / 3
+    assert hopper["models"]["ddpg_zoo"]["scores"] == [60.0, pytest.approx(60.0 + 1 / 3)]
+    table = (out / "report-benchmark" / "evaluation.md").read_text()
+    assert "| Hopper-v4 | DDPG (RL Zoo) | 20-40 | 2 |" in table
+    assert "A run's score: the mean of its last 3 evaluations up to the step" in table
+    # up to an earlier step; the default (1) is the step's evaluation alone
+    at_30 = make_report(out, suite="benchmark", eval_step=30, eval_last=2, bootstrap_reps=REPS)["evaluation"]["Hopper-v4"]
+    assert at_30["steps_averaged"] == [20, 30] and at_30["models"]["ddpg_zoo"]["scores"] == [40.0, 40.5]
+    assert make_report(out, suite="benchmark", bootstrap_reps=REPS)["evaluation"]["Hopper-v4"]["steps_averaged"] == [40]
+
+    with pytest.raises(ValueError, match="fewer than the 5"):
+        make_report(out, suite="benchmark", eval_last=5, bootstrap_reps=REPS)
+    with pytest.raises(ValueError, match="whole number >= 1, got 0"):
+        make_report(out, suite="benchmark", eval_last=0, bootstrap_reps=REPS)
+    for bad in ("0", "-2", "two"):
+        with pytest.raises(SystemExit):
+            main(["report", str(out), "--eval-last", bad])
+        assert "--eval-last: expected a whole number >= 1" in capsys.readouterr().err
+    assert main(["report", str(out), "--suite", "benchmark", "--eval-last", "4", "--reps", str(REPS)]) == 0
+    assert "| TD3 (RL Zoo) | 10-40 | 2 | 1048 " in capsys.readouterr().out  # (10 + 20.5 + 60 + 100) / 4 + 1000, IQM

@@ -57,6 +57,13 @@ def _seeds(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(str(error)) from error
 
 
+def _count(text: str) -> int:
+    """A whole number >= 1, for argparse (which shows the message)."""
+    if not text.strip().isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
+
+
 def make_parser() -> argparse.ArgumentParser:
     """:return: the parser of ``run``, ``report``, ``trap`` and ``screen``"""
     parser = argparse.ArgumentParser(
@@ -121,6 +128,14 @@ def make_parser() -> argparse.ArgumentParser:
     )
     report.add_argument("--to", dest="report_dir", help="write the report files here (default: OUT, or OUT/report-SUITE)")
     report.add_argument("--eval-step", type=int, help="evaluation step of evaluation.md (default: the last one every run has)")
+    report.add_argument(
+        "--eval-last",
+        type=_count,
+        default=1,
+        metavar="N",
+        help="evaluation.md scores a run by the mean of its last N evaluations up to the step, e.g. 6 at 200k steps with "
+        "an evaluation every 10k: 150k-200k (default: 1, the step's alone)",
+    )
     report.add_argument(
         "--reps", type=int, default=10_000, help="bootstrap resamples of evaluation.md's intervals (default: 10000)"
     )
@@ -326,6 +341,7 @@ def report_command(args: argparse.Namespace) -> int:
         partial=args.partial,
         report_dir=args.report_dir,
         eval_step=args.eval_step,
+        eval_last=args.eval_last,
         extra=args.extra,
         bootstrap_reps=args.reps,
     )

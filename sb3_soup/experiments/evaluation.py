@@ -49,19 +49,26 @@ def _matrix(scores: np.ndarray) -> np.ndarray:
     return matrix.reshape(-1, 1) if matrix.ndim == 1 else matrix
 
 
-def run_scores(evaluations: Sequence[tuple[np.ndarray, np.ndarray]], step: int) -> np.ndarray:
+def run_scores(evaluations: Sequence[tuple[np.ndarray, np.ndarray]], step: int, last: int = 1) -> np.ndarray:
     """
-    :param evaluations: per run, its ``(steps, mean returns)`` arrays
+    :param evaluations: per run, its ``(steps, mean returns)`` arrays, in the order of the steps
     :param step: the evaluation step
-    :return: ``(n_runs,)`` the runs' mean evaluation return at ``step``
-    :raises ValueError: when a run was not evaluated at ``step``
+    :param last: how many evaluations a run's score averages: its last ``last`` up to ``step`` (1: the one at ``step``;
+        e.g. 6 at 200k steps with an evaluation every 10k: 150k-200k, less noisy than one evaluation)
+    :return: ``(n_runs,)`` the runs' mean evaluation return at ``step`` (averaged over the ``last`` evaluations)
+    :raises ValueError: when a run was not evaluated at ``step``, or fewer than ``last`` times up to it
     """
+    if isinstance(last, bool) or not isinstance(last, (int, np.integer)) or last < 1:
+        raise ValueError(f"the number of evaluations a run's score averages must be a whole number >= 1, got {last!r}")
     scores = []
     for steps, returns in evaluations:
-        where = np.flatnonzero(np.asarray(steps) == step)
-        if where.size == 0:
-            raise ValueError(f"a run has no evaluation at step {step} (its steps: {list(steps)})")
-        scores.append(float(returns[where[0]]))
+        steps = np.asarray(steps)
+        if not (steps == step).any():
+            raise ValueError(f"a run has no evaluation at step {step} (its steps: {steps.tolist()})")
+        up_to = np.flatnonzero(steps <= step)
+        if up_to.size < last:
+            raise ValueError(f"a run has {up_to.size} evaluations up to step {step}, fewer than the {last} its score averages")
+        scores.append(float(np.mean(np.asarray(returns)[up_to[-last:]])))
     return np.asarray(scores)
 
 

@@ -400,7 +400,12 @@ def _compute(
 
 
 def evaluation_report(
-    columns: Sequence[Column], baseline: str | None, step: int | None, partial: bool, reps: int = evaluation.DEFAULT_REPS
+    columns: Sequence[Column],
+    baseline: str | None,
+    step: int | None,
+    partial: bool,
+    reps: int = evaluation.DEFAULT_REPS,
+    last: int = 1,
 ) -> tuple[str, dict[str, Any], dict[str, Any]]:
     """
     The deterministic evaluations' statistics: per env and model, the IQM of the runs' evaluation returns at ``step``
@@ -411,6 +416,7 @@ def evaluation_report(
     :param step: the evaluation step (default: per env, the last one every used run has)
     :param partial: also use unfinished runs that have an evaluation at the step
     :param reps: bootstrap resamples of the intervals (the curves' use a fifth)
+    :param last: a run's score is the mean of its last ``last`` evaluations up to the step (1: the step's alone)
     :return: Markdown (empty when no run has evaluations), JSON data, and the curves to plot
     """
     rows: dict[str, list[tuple[Column, list[RunRecord], list[tuple[np.ndarray, np.ndarray]]]]] = {}
@@ -437,9 +443,17 @@ def evaluation_report(
             for column, records, runs in env_rows
             if (kept := [(record, run) for record, run in zip(records, runs) if at in evaluation.common_steps([run])])
         ]
-        scores = {column.model: evaluation.run_scores(runs, at) for column, _, runs in env_rows}
+        scores = {column.model: evaluation.run_scores(runs, at, last) for column, _, runs in env_rows}
         reference = scores.get(baseline) if baseline is not None else None
-        data[env_id] = {"step": at, "baseline": baseline if reference is not None else None, "models": {}}
+        # the steps a score averages (every run evaluates on the same grid: its first and last steps name the window)
+        window = [s for s in evaluation.common_steps([run for _, _, runs in env_rows for run in runs]) if s <= at][-last:]
+        at_text = str(at) if last == 1 else f"{window[0]}-{at}"
+        data[env_id] = {
+            "step": at,
+            "steps_averaged": window,
+            "baseline": baseline if reference is not None else None,
+            "models": {},
+        }
         curves[env_id] = []
         for index, (column, records, runs) in enumerate(env_rows):
             values = scores[column.model]
@@ -458,15 +472,19 @@ def evaluation_report(
             }
             cell = "(baseline)" if column.model == baseline else (improvement.format(2) if improvement else "-")
             lines.append(
-                f"| {env_id if index == 0 else ''} | {column.label} | {at} | {len(values)} | {estimate.format()} | "
+                f"| {env_id if index == 0 else ''} | {column.label} | {at_text} | {len(values)} | {estimate.format()} | "
                 f"{values.mean():.0f} ± {values.std(ddof=0):.0f} | {cell} |"
             )
             steps = [s for s in evaluation.common_steps(runs) if s <= at]
             curve = evaluation.iqm_curve(runs, steps, reps=max(1, reps // 5))
             curves[env_id].append((column.label, steps, [(e.value, e.low, e.high) for e in curve]))
+    episodes = "the mean return of its deterministic evaluation episodes"
+    score = f"{episodes} at the step"
+    if last > 1:
+        score = f"the mean of its last {last} evaluations up to the step, each {episodes}"
     lines += [
         "",
-        "- A run's score: the mean return of its deterministic evaluation episodes at the step (SB3's EvalCallback). "
+        f"- A run's score: {score} (SB3's EvalCallback). "
         "IQM: interquartile mean over runs; [95% CI]: stratified bootstrap (rliable); Mean ± std: over runs (ddof=0).",
         f"- P(improvement): probability that a run of the model scores higher than a run of `{baseline}` (rliable)."
         if baseline is not None
@@ -487,6 +505,7 @@ def make_report(
     eval_step: int | None = None,
     extra: Sequence[str | os.PathLike] = (),
     bootstrap_reps: int = evaluation.DEFAULT_REPS,
+    eval_last: int = 1,
 ) -> dict[str, Any]:
     """
     Compute the metrics of an experiment folder's runs and write the report files.
@@ -504,6 +523,8 @@ def make_report(
     :param extra: more experiment folders whose runs join the report (e.g. baselines trained for longer, read at
         ``eval_step``); a run (env, model, seed) may be in one folder only
     :param bootstrap_reps: bootstrap resamples of ``evaluation.md``'s intervals
+    :param eval_last: ``evaluation.md`` scores a run by the mean of its last ``eval_last`` evaluations up to
+        ``eval_step`` (1: the step's alone)
     :return: the data written to ``metrics.json``
     """
     out = Path(out)
@@ -556,7 +577,7 @@ def make_report(
         plot_confidence(confidence, target / "confidence.png")
         files.append("confidence.png")
     evaluation_table, evaluation_data, evaluation_curves = evaluation_report(
-        [*columns, *baseline_columns], baseline_model, eval_step, partial, bootstrap_reps
+        [*columns, *baseline_columns], baseline_model, eval_step, partial, bootstrap_reps, eval_last
     )
     if evaluation_table:
         title = f"Suite: **{suite}** (from `{out}`)\n\n" if suite else ""
