@@ -1,5 +1,7 @@
 """SOUPPolicy.ensemble_view: the candidates, V, W, the chosen head and the critic heads' disagreement, as predict sees them."""
 
+import json
+
 import numpy as np
 import pytest
 import torch as th
@@ -128,3 +130,32 @@ def test_example_runs(capsys):
     out = capsys.readouterr().out
     assert "States the policy visits:" in out and "never saw" in out and "mean Q spread" in out
     assert seen > 0 and unseen > 0
+
+
+def test_heads_example(tmp_path):
+    """examples/ensemble_heads.py: the E-action's returns are evaluate_policy's of the model, on the same episodes; one
+    entry per actor head; the executed candidates' shares add up to 1."""
+    import importlib.util
+    from pathlib import Path
+
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "ensemble_heads.py"
+    spec = importlib.util.spec_from_file_location("ensemble_heads", path)
+    assert spec is not None and spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, learning_starts=50, seed=0)
+    model.learn(150)
+    model.save(tmp_path / "model.zip")
+    result = example.main(
+        [str(tmp_path / "model.zip"), "--env", "Pendulum-v1", "--episodes", "2", "--json", str(tmp_path / "h.json")]
+    )
+    expected, _ = evaluate_policy(
+        model, make_vec_env("Pendulum-v1", n_envs=1, seed=1000), n_eval_episodes=2, return_episode_rewards=True
+    )
+    np.testing.assert_allclose(result["e_action"]["returns"], expected, rtol=1e-5)
+    assert len(result["heads"]) == 3 and all(len(head["returns"]) == 2 for head in result["heads"])
+    assert sum(result["chosen_fraction"]) == pytest.approx(1.0)
+    assert json.loads((tmp_path / "h.json").read_text())["e_action"] == result["e_action"]
