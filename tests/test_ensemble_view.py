@@ -116,16 +116,22 @@ def test_dict_observations():
     np.testing.assert_allclose(view.candidates, 3 * scaled, rtol=1e-6, atol=1e-6)  # in the env's bounds [-3, 3]
 
 
-def test_example_runs(capsys):
-    """examples/ensemble_uncertainty.py, on a tiny budget: it prints the view of visited and unseen states."""
+def load_example(name: str):
+    """:return: the module ``examples/<name>.py``"""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parent.parent / "examples" / "ensemble_uncertainty.py"
-    spec = importlib.util.spec_from_file_location("ensemble_uncertainty", path)
+    path = Path(__file__).resolve().parent.parent / "examples" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
+    return example
+
+
+def test_example_runs(capsys):
+    """examples/ensemble_uncertainty.py, on a tiny budget: it prints the view of visited and unseen states."""
+    example = load_example("ensemble_uncertainty")
     seen, unseen = example.main(timesteps=150, n_heads=2, n_states=2)
     out = capsys.readouterr().out
     assert "States the policy visits:" in out and "never saw" in out and "mean Q spread" in out
@@ -135,17 +141,10 @@ def test_example_runs(capsys):
 def test_heads_example(tmp_path):
     """examples/ensemble_heads.py: the E-action's returns are evaluate_policy's of the model, on the same episodes; one
     entry per actor head; the executed candidates' shares add up to 1."""
-    import importlib.util
-    from pathlib import Path
-
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    path = Path(__file__).resolve().parent.parent / "examples" / "ensemble_heads.py"
-    spec = importlib.util.spec_from_file_location("ensemble_heads", path)
-    assert spec is not None and spec.loader is not None
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
+    example = load_example("ensemble_heads")
     model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, learning_starts=50, seed=0)
     model.learn(150)
     model.save(tmp_path / "model.zip")
