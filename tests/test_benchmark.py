@@ -2,13 +2,13 @@
 The throughput benchmark's plumbing (benchmarks/throughput.py): not timed, speed targets live in the benchmark itself.
 """
 
-import importlib.util
 import json
 import pathlib
 import subprocess
 import sys
 
 import pytest
+from scripts import load_script
 
 from sb3_soup.presets import PAPER_UPDATE
 
@@ -16,11 +16,7 @@ SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "throughpu
 
 
 def load_benchmark():
-    spec = importlib.util.spec_from_file_location("throughput", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/throughput.py")
 
 
 def test_flop_counts():

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from scripts import load_script
 
 from sb3_soup import SOUP, EnsembleView
 
@@ -116,22 +117,9 @@ def test_dict_observations():
     np.testing.assert_allclose(view.candidates, 3 * scaled, rtol=1e-6, atol=1e-6)  # in the env's bounds [-3, 3]
 
 
-def load_example(name: str):
-    """:return: the module ``examples/<name>.py``"""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parent.parent / "examples" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
-    return example
-
-
 def test_example_runs(capsys):
     """examples/ensemble_uncertainty.py, on a tiny budget: it prints the view of visited and unseen states."""
-    example = load_example("ensemble_uncertainty")
+    example = load_script("examples/ensemble_uncertainty.py")
     seen, unseen = example.main(timesteps=150, n_heads=2, n_states=2)
     out = capsys.readouterr().out
     assert "States the policy visits:" in out and "never saw" in out and "mean Q spread" in out
@@ -144,7 +132,7 @@ def test_heads_example(tmp_path):
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    example = load_example("ensemble_heads")
+    example = load_script("examples/ensemble_heads.py")
     model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, learning_starts=50, seed=0)
     model.learn(150)
     model.save(tmp_path / "model.zip")

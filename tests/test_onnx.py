@@ -1,9 +1,7 @@
 """sb3_soup.export_onnx: the exported graph, run by onnxruntime, acts as model.predict(obs, deterministic=True)."""
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +12,7 @@ pytest.importorskip("onnxscript")
 ort = pytest.importorskip("onnxruntime")
 
 from image_env import TinyImageEnv  # noqa: E402
+from scripts import load_script  # noqa: E402
 from test_bad_input import ToyEnv  # noqa: E402  (20-step episodes of random observations)
 
 from sb3_soup import SOUP, export_onnx  # noqa: E402
@@ -102,11 +101,7 @@ def test_onnx_refuses_what_it_cannot_export(tmp_path, monkeypatch):
 
 def test_latency_benchmark_plumbing(tmp_path):
     """benchmarks/onnx_latency.py --quick: its rows and JSON (not timed: the numbers live in docs/benchmarks.md)."""
-    script = Path(__file__).resolve().parent.parent / "benchmarks" / "onnx_latency.py"
-    spec = importlib.util.spec_from_file_location("onnx_latency", script)
-    assert spec is not None and spec.loader is not None
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
+    benchmark = load_script("benchmarks/onnx_latency.py")
     result = benchmark.main(["--quick", "--out", str(tmp_path / "quick.json")])
     assert json.loads((tmp_path / "quick.json").read_text()) == json.loads(json.dumps(result))
     assert [row["name"] for row in result["rows"]] == [config["name"] for config in benchmark.QUICK]

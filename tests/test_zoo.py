@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import yaml
 from gymnasium import spaces
+from scripts import load_script
 
 import _sb3_soup_zoo_hook
 from sb3_soup import paper_settings, zoo
@@ -157,9 +158,7 @@ def repo_soup_entries() -> dict:
 
 def test_pandareach_entry_is_the_her_benchmarks_settings():
     """soup.yml's PandaReach-v3 (the Zoo's HER entry for SOUP) is what benchmarks/her_panda.py measured."""
-    spec = importlib.util.spec_from_file_location("her_panda", REPO / "benchmarks" / "her_panda.py")
-    her_panda = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(her_panda)
+    her_panda = load_script("benchmarks/her_panda.py")
     entry = repo_soup_entries()[her_panda.ENV_ID]
     assert entry["policy"] == "MultiInputPolicy" and entry["replay_buffer_class"] == "HerReplayBuffer"
     from sb3_soup import SOUP
@@ -300,10 +299,7 @@ def test_startup_installs_the_finder_and_imports_nothing_heavy(tmp_path):
 
 def test_startup_cost_under_two_ms():
     """-X importtime of the hook module at start-up (bytecode compiled, as after a wheel install), as the benchmark does."""
-    spec = importlib.util.spec_from_file_location("zoo_startup", REPO / "benchmarks" / "zoo_startup.py")
-    assert spec is not None and spec.loader is not None
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
+    benchmark = load_script("benchmarks/zoo_startup.py")
     benchmark.compile_hook()
     costs = [benchmark.hook_import_us() for _ in range(5)]
     assert min(costs) < 2000, costs
