@@ -52,8 +52,13 @@ OBS_DIM, ACT_DIM = 11, 3
 DDPG_ARCH = [256, 256]
 # SB3's TD3 default and the RL Zoo's (the screening suite's TD3): the "td3-sb3" rows, the reference of "x TD3"
 TD3_SB3_ARCH = [400, 300]
-# The paper's sizes (sb3_soup.policies.DEFAULT_NET_ARCH)
+# The paper's sizes (sb3_soup.policies.DEFAULT_NET_ARCH), where each checkout's default puts the action (a --before
+# checkout may have another default)
 SOUP_ARCH = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
+# Where SOUP's critic takes the action, for the FLOP count: sb3_soup.policies.DEFAULT_ACTION_LAYER (tests/test_benchmark.py
+# checks it), 1, the paper's, at the second layer, after which the rest of the body runs once per action scored (0:
+# its input, where the whole body runs once per action); written out as PAPER_SCHEME is
+SOUP_ACTION_LAYER = 1
 
 
 def _single_thread() -> None:
@@ -188,13 +193,29 @@ def _mlp_macs(sizes: list[int]) -> int:
     return sum(sizes[i] * sizes[i + 1] for i in range(len(sizes) - 1))
 
 
-def train_flops(config: dict[str, Any]) -> float:
+def _critic_body_macs(action_layer: int | None) -> tuple[int, int]:
+    """
+    Multiply-accumulates of SOUP's critic body for one observation: the part computed once per observation, and the
+    part computed once per action it scores (the action's projection in the layer it joins, and the layers after).
+
+    :param action_layer: where the action joins (``qf_action_layer``; None: :data:`SOUP_ACTION_LAYER`)
+    """
+    body = SOUP_ARCH["qf_body"]
+    if (SOUP_ACTION_LAYER if action_layer is None else action_layer) == 1:
+        return OBS_DIM * body[0] + body[0] * body[1], ACT_DIM * body[1] + _mlp_macs(body[1:])
+    return OBS_DIM * body[0], ACT_DIM * body[0] + _mlp_macs(body)
+
+
+def train_flops(config: dict[str, Any], action_layer: int | None = None) -> float:
     """
     FLOPs of one gradient step (critic and actor updates, targets), counted from the layer sizes: a forward pass is
     2 FLOPs per multiply-accumulate and per sample; a pass that needs the weights' gradients costs 3 forward passes,
     one that only propagates the gradient to its input (the critic under the actor loss in SOUP, which calls
     ``backward(inputs=actor parameters)``) 2. SB3's DDPG/TD3 backpropagate the actor loss into the critic's weights
     too (3). Optimizer and soft updates (proportional to the parameter count, not the batch) are left out.
+
+    :param config: the row
+    :param action_layer: where SOUP's critic takes the action (None: :data:`SOUP_ACTION_LAYER`)
     """
     batch = config["batch_size"]
     if config["algo"] in ("ddpg", "td3", "td3-sb3"):
@@ -213,9 +234,7 @@ def train_flops(config: dict[str, Any]) -> float:
     update = scheme(config)
     a_body = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]])
     a_head = _mlp_macs([SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM])
-    h1, h2 = SOUP_ARCH["qf_body"][:2]
-    c_obs = OBS_DIM * h1 + h1 * h2 + _mlp_macs(SOUP_ARCH["qf_body"][1:])  # observation part of the body
-    c_act = ACT_DIM * h2  # action projection of the joint layer
+    c_obs, c_act = _critic_body_macs(action_layer)
     c_head = _mlp_macs([SOUP_ARCH["qf_body"][-1], *SOUP_ARCH["qf_head"], 1])
     n = 1 if update["train_heads"] == "active" else k  # critic heads (pairs) trained by the step
     m = k if update["train_heads"] == "all" else 1  # actor heads trained when the actor is
@@ -226,11 +245,14 @@ def train_flops(config: dict[str, Any]) -> float:
     return 2.0 * batch * (target + critic + actor / update["policy_delay"])
 
 
-def predict_flops(config: dict[str, Any]) -> float:
+def predict_flops(config: dict[str, Any], action_layer: int | None = None) -> float:
     """
     FLOPs of a deterministic ``predict`` for one observation. DDPG: its actor. SOUP: every actor head proposes a
     candidate, every critic head scores every candidate (K x K head evaluations, the E-Critic's matrix ``V``), plus the
     confidence network (adaptive).
+
+    :param config: the row
+    :param action_layer: where SOUP's critic takes the action (None: :data:`SOUP_ACTION_LAYER`)
     """
     if config["algo"] in ("ddpg", "td3", "td3-sb3"):
         return 2.0 * _mlp_macs([OBS_DIM, *baseline_arch(config), ACT_DIM])
@@ -238,8 +260,8 @@ def predict_flops(config: dict[str, Any]) -> float:
     actor = _mlp_macs([OBS_DIM, *SOUP_ARCH["pi_body"]]) + k * _mlp_macs(
         [SOUP_ARCH["pi_body"][-1], *SOUP_ARCH["pi_head"], ACT_DIM]
     )
-    h1, h2 = SOUP_ARCH["qf_body"][:2]
-    critic = OBS_DIM * h1 + h1 * h2 + k * ACT_DIM * h2 + k * k * _mlp_macs([h2, *SOUP_ARCH["qf_head"], 1])
+    c_obs, c_act = _critic_body_macs(action_layer)
+    critic = c_obs + k * c_act + k * k * _mlp_macs([SOUP_ARCH["qf_body"][-1], *SOUP_ARCH["qf_head"], 1])
     confidence = _mlp_macs([OBS_DIM, 256, 128, k]) if scheme(config)["confidence"] == "adaptive" and k > 1 else 0
     if k == 1:
         critic = 0  # one candidate: no scoring
@@ -343,6 +365,8 @@ def measure_speed(config: dict[str, Any], device: str, window: float, learning_s
         **{f"{part}_ms": 1e3 * seconds / n_steps for part, seconds in spent.items()},
         predict_1_ms=_predict_latency_ms(model, 1, duration=min(1.0, window / 4)),
         predict_8_ms=_predict_latency_ms(model, 8, duration=min(1.0, window / 4)),
+        # where the critic takes the action (SOUP's; a checkout before the choice existed: the paper's second layer)
+        qf_action_layer=getattr(model.critic, "action_layer", 1),
     )
 
 
@@ -428,8 +452,9 @@ def summarize(configs: list[dict[str, Any]], speed: dict[str, list], memory: dic
         row: dict[str, Any] = dict(name=name, config=config, repeats=runs)
         for key in ("steps_per_s", "cpu_steps_per_s", "predict_1_ms", "predict_8_ms", *BREAKDOWN):
             row[key] = _median(runs, key)
-        row["train_gflop"] = train_flops(config) / 1e9
-        row["predict_mflop"] = predict_flops(config) / 1e6
+        action_layer = runs[0].get("qf_action_layer")  # SOUP's critic as the row's checkout built it
+        row["train_gflop"] = train_flops(config, action_layer) / 1e9
+        row["predict_mflop"] = predict_flops(config, action_layer) / 1e6
         rows.append(row)
     for row in rows:
         batch_size = row["config"]["batch_size"]

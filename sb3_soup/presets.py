@@ -56,23 +56,23 @@ def paper_hyperparams() -> dict[str, Any]:
         gamma=0.99,
         **PAPER_UPDATE,
         **PAPER_NOISE,
-        policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
+        policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128], qf_action_layer=1)),
     )
 
 
 def paper_settings(action_space: spaces.Space) -> dict[str, Any]:
     """
-    The paper's hyper-parameters and update (Section 5 and Algorithm 1), for
-    ``SOUP(policy, env, **paper_settings(env.action_space))``: Adam with actor lr 1e-4 and critic lr 3e-4, gamma 0.99,
-    tau 1e-3, batch 1024, a replay memory of 1e6, the paper's networks (actor (256, **128**), critic (256, 256,
-    **128**), LeakyReLU), one randomly drawn head pair trained per episode on its own target, no delayed or smoothed
-    updates, the adaptive confidence's selection read as ``softmax(v / temperature)`` (eq. 8). Not in the paper, our
-    choices: Gaussian exploration noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per step down to 0.05
-    (``action_noise``, a :class:`sb3_soup.DecayingNormalActionNoise`, which needs the action space's shape), 1000 random
-    steps first, and the confidence network's lr 1e-4 (with the selection's ``temperature_mode="absolute"``,
-    :class:`AdaptiveConfidence`'s defaults, so that these settings go with any preset and strategy). K is the user's (the
-    paper: 5 or 10), as are the preset and the mask probability (not in the paper; the model's default,
-    :data:`DEFAULT_MASK_PROB`).
+    The paper's hyper-parameters and update (Section 5 and Algorithm 1), for ``SOUP(policy, env,
+    **paper_settings(env.action_space))``: Adam with actor lr 1e-4 and critic lr 3e-4, gamma 0.99, tau 1e-3, batch 1024,
+    a replay memory of 1e6, the paper's networks (actor (256, **128**), critic (256, 256, **128**) with the action
+    joining at its second layer, LeakyReLU), one randomly drawn head pair trained per episode on its own target, no
+    delayed or smoothed updates, the adaptive confidence's selection read as ``softmax(v / temperature)`` (eq. 8). Not
+    in the paper, our choices: Gaussian exploration noise of std 0.2 in the [-1, 1] action scale decayed by 0.999995 per
+    step down to 0.05 (``action_noise``, a :class:`sb3_soup.DecayingNormalActionNoise`, which needs the action space's
+    shape), 1000 random steps first, and the confidence network's lr 1e-4 (with the selection's
+    ``temperature_mode="absolute"``, :class:`AdaptiveConfidence`'s defaults, so that these settings go with any preset
+    and strategy). K is the user's (the paper: 5 or 10), as are the preset and the mask probability (not in the paper;
+    the model's default, :data:`DEFAULT_MASK_PROB`).
 
     :param action_space: the environment's action space (``env.action_space``)
     :return: SOUP constructor arguments

@@ -57,7 +57,7 @@ SETTINGS: dict[str, Any] = dict(
     target_q="own",
     policy_delay=1,
     target_policy_noise=0.0,
-    policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])),
+    policy_kwargs=dict(net_arch=dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128], qf_action_layer=1)),
 )
 WARMUP = SETTINGS["learning_starts"]  # the first steps act at random: no network is involved
 # The paper mode's noise, std 0.2 decayed by 0.999995 per step down to 0.05, as the runs were recorded (before issue 20):

@@ -10,6 +10,7 @@ import sys
 import pytest
 from scripts import load_script
 
+from sb3_soup.policies import DEFAULT_ACTION_LAYER
 from sb3_soup.presets import PAPER_UPDATE
 
 SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
@@ -25,10 +26,14 @@ def test_flop_counts():
     soup = dict(algo="soup", batch_size=1024, n_heads=10, train_heads="all", confidence="adaptive")
     # DDPG [256, 256] on Hopper: about 0.76M multiply-adds per sample and update
     assert bench.train_flops(ddpg) == pytest.approx(2 * 1024 * 762_000, rel=0.01)
-    # all heads at K=10: about 5x DDPG's arithmetic; the active pair about DDPG's
+    # all heads at K=10: about 5x DDPG's arithmetic with the paper's critic (the body's observation part once), 7x with
+    # the action at the critic's input (the body runs once per head's action); the active pair about DDPG's
+    assert bench.SOUP_ACTION_LAYER == DEFAULT_ACTION_LAYER == 1  # the script's copy (a --before checkout's may differ)
     assert 4.5 < bench.train_flops(soup) / bench.train_flops(ddpg) < 5.5
     active = dict(soup, train_heads="active")
     assert 0.9 < bench.train_flops(active) / bench.train_flops(ddpg) < 1.1
+    assert 6.7 < bench.train_flops(soup, action_layer=0) / bench.train_flops(ddpg) < 7.7
+    assert 0.9 < bench.train_flops(active, action_layer=0) / bench.train_flops(ddpg) < 1.1
     # FLOPs scale with the batch
     assert bench.train_flops(dict(ddpg, batch_size=256)) == pytest.approx(bench.train_flops(ddpg) / 4)
     # predict: the E-Critic scores K x K (candidate, critic head) pairs

@@ -81,7 +81,7 @@ def test_shared_features_extractor_is_the_actors_trained_by_the_actor_only():
     obs = th.as_tensor(model.observation_space.sample()[None])
     model.critic(obs, th.zeros(1, 2)).sum().backward()
     assert all(p.grad is None for p in actor_extractor.parameters())
-    assert all(p.grad is not None for p in model.critic.obs_layer.parameters())
+    assert all(p.grad is not None for p in model.critic.joint_layer.parameters())  # the critic's first layer
 
 
 @pytest.mark.parametrize("share", [False, True], ids=["separate", "shared"])

@@ -58,14 +58,20 @@ def model():
     return SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, buffer_size=100, learning_starts=10, seed=0)
 
 
+@pytest.mark.parametrize("action_layer", [0, 1], ids=["input", "second-layer"])
 @pytest.mark.parametrize("actions_shape", [(8, 1), (3, 8, 1), (1, 8, 1)])
-def test_critic_fused_action_projection_matches_concatenation(model, actions_shape):
+def test_critic_fused_action_projection_matches_concatenation(actions_shape, action_layer):
     """``W [h1; a] + b`` computed on the concatenation, as nn.Linear would, for one or N actions per observation."""
-    critic = model.critic
+    policy_kwargs = dict(net_arch=dict(qf_action_layer=action_layer))
+    critic = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, buffer_size=100, policy_kwargs=policy_kwargs, seed=0).critic
     th.manual_seed(1)
     obs = th.randn(8, 3)
     actions = th.rand(*actions_shape) * 2 - 1
-    h1 = critic.activation(critic.obs_layer(obs))  # (B, H1)
+
+    def first(obs):  # what the layer the action joins takes from the observation: (B, F) or (B, H1)
+        return obs if critic.obs_layer is None else critic.activation(critic.obs_layer(obs))
+
+    h1 = first(obs)
     if actions.dim() == 2:
         z = critic.joint_layer(th.cat([h1, actions], dim=-1))
     else:
@@ -76,7 +82,7 @@ def test_critic_fused_action_projection_matches_concatenation(model, actions_sha
     actions_a = actions.clone().requires_grad_(True)
     actions_b = actions.clone().requires_grad_(True)
     critic.body_features(obs, actions_a).sum().backward()
-    h1 = critic.activation(critic.obs_layer(obs))
+    h1 = first(obs)
     expanded = h1 if actions.dim() == 2 else h1.expand(actions.shape[0], -1, -1)
     critic.body(critic.activation(critic.joint_layer(th.cat([expanded, actions_b], dim=-1)))).sum().backward()
     th.testing.assert_close(actions_a.grad, actions_b.grad)
