@@ -297,6 +297,39 @@ def test_benchmark_suite_runs_what_peers_publish(tmp_path):
     assert [(spec.model, spec.seed) for spec in given] == [("td3_zoo", 7), ("sac_zoo", 7)]
 
 
+def test_a_soup_spec_records_its_networks_so_a_default_change_does_not_reuse_old_runs(tmp_path, monkeypatch):
+    import sb3_soup.policies
+
+    defaults, td3 = build_grid("Pendulum-v1", tmp_path, suite="benchmark", models=["soup_defaults", "td3_zoo"], seeds=[0])
+    assert "policy_kwargs" not in defaults.hyperparams  # SOUP's defaults: the networks are the default ones...
+    assert defaults.net_arch == dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128], qf_action_layer=1)
+    assert td3.net_arch is None  # ...and the spec says which (SB3's algorithms: their hyperparams say it)
+    candidate = build_grid(
+        "Pendulum-v1", tmp_path, suite="benchmark", models=["soup_defaults"], seeds=[0], name="sb3_critic",
+        overrides=parse_overrides(["policy_kwargs=dict(net_arch=dict(qf_action_layer=0, qf_body=[64]))"]),
+    )[0]  # fmt: skip
+    assert candidate.net_arch == dict(pi_body=[256], pi_head=[128], qf_body=[64], qf_head=[128], qf_action_layer=0)
+
+    # A spec.json written before specs recorded the networks (no net_arch) trained the critic of then, where the action
+    # joined at the second layer unless its net_arch said otherwise
+    def finished_before(spec: RunSpec) -> None:
+        Path(spec.run_dir).mkdir(parents=True)
+        data = dataclasses.asdict(spec)
+        del data["net_arch"]
+        (Path(spec.run_dir) / "spec.json").write_text(json.dumps(data))
+        (Path(spec.run_dir) / DONE_FILE).write_text("{}")
+
+    finished_before(defaults)
+    finished_before(candidate)
+    assert is_finished(defaults) and is_finished(candidate)
+    monkeypatch.setattr(sb3_soup.policies, "DEFAULT_ACTION_LAYER", 0)  # were the default critic SB3's...
+    defaults_now = build_grid("Pendulum-v1", tmp_path, suite="benchmark", models=["soup_defaults"], seeds=[0])[0]
+    assert defaults_now.net_arch["qf_action_layer"] == 0
+    assert not is_finished(defaults_now)  # ...the old defaults' run would not count as the new defaults'
+    assert "differs in: net_arch" in run_one(dataclasses.asdict(defaults_now))["error"]
+    assert is_finished(candidate)  # a run whose net_arch said where the action joins keeps its meaning
+
+
 def test_confidence_suite_shares_the_models_suites_runs(tmp_path):
     models = {spec.key: spec for spec in build_grid("Hopper-v4", tmp_path, suite="models", seeds=[0])}
     confidence = build_grid("Hopper-v4", tmp_path, suite="confidence", seeds=[0])

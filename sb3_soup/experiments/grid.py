@@ -165,6 +165,9 @@ class RunSpec:
     :param stop_after: stop (resumably) after this many new steps in this session; ``None``: run to the end
     :param eval_freq: evaluate the deterministic policy every this many steps (0: never), as SB3's ``EvalCallback``
     :param eval_episodes: episodes per evaluation
+    :param net_arch: a SOUP run's networks as its ``policy_kwargs`` build them (:func:`soup_net_arch`), recorded so that
+        a spec keeps its meaning when a default architecture changes; ``None`` for the SB3 algorithms, and in a SOUP
+        spec written before specs recorded it (read as the networks of then, :data:`SPEC_ACTION_LAYER_BEFORE`)
     """
 
     env_id: str
@@ -181,6 +184,7 @@ class RunSpec:
     stop_after: int | None = None
     eval_freq: int = 10_000
     eval_episodes: int = 10
+    net_arch: dict[str, Any] | None = None
 
     @property
     def key(self) -> str:
@@ -195,19 +199,46 @@ class RunSpec:
     def config(self) -> dict[str, Any]:
         """
         The run's identity: the settings that define its results (environment, algorithm, hyper-parameters, seed,
-        budget), what must match to resume, skip or share it. Names (``model``, ``variant``, ``label``) and where or
-        how it runs (``run_dir``, ``checkpoint_freq``, ``stop_after``) are not part of it.
+        budget, SOUP's networks), what must match to resume, skip or share it. Names (``model``, ``variant``,
+        ``label``) and where or how it runs (``run_dir``, ``checkpoint_freq``, ``stop_after``) are not part of it.
 
         :return: the settings, JSON-normalised (tuples as lists), so a spec read back from ``spec.json`` compares equal
         """
         data = dataclasses.asdict(self)
         for name in ("model", "variant", "label", "run_dir", "checkpoint_freq", "stop_after"):
             data.pop(name)
+        if self.algo == "soup" and self.net_arch is None:  # a spec from before specs recorded the networks
+            data["net_arch"] = soup_net_arch(self.hyperparams, default_action_layer=SPEC_ACTION_LAYER_BEFORE)
         return json.loads(json.dumps(data))
 
     def to_json(self) -> str:
         """:return: the spec as JSON"""
         return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
+
+
+SPEC_ACTION_LAYER_BEFORE = 1
+"""Where the action joined the critic in a SOUP run whose ``spec.json`` has no ``net_arch`` (written before specs
+recorded the networks, when the default was the paper's critic) and whose ``policy_kwargs`` leave it to the default."""
+
+
+def soup_net_arch(hyperparams: dict[str, Any], default_action_layer: int | None = None) -> dict[str, Any]:
+    """
+    The networks a SOUP run builds, every key set (:func:`sb3_soup.policies.parse_net_arch` of the ``net_arch`` in its
+    ``policy_kwargs``, a dict or an RL-Zoo style string).
+
+    :param hyperparams: the run's constructor arguments
+    :param default_action_layer: where the action joins the critic when ``net_arch`` is SOUP's form and does not say;
+        ``None``: SOUP's default today
+    :return: SOUP's form of ``net_arch``
+    """
+    from sb3_soup.experiments.runner import resolve_policy_kwargs
+    from sb3_soup.policies import parse_net_arch
+
+    net_arch = (resolve_policy_kwargs(hyperparams.get("policy_kwargs")) or {}).get("net_arch")
+    soup_form = net_arch is None or (isinstance(net_arch, dict) and not {"pi", "qf"} & set(net_arch))
+    if default_action_layer is not None and soup_form:
+        net_arch = {"qf_action_layer": default_action_layer, **(net_arch or {})}
+    return parse_net_arch(net_arch)
 
 
 def soup_defaults() -> dict[str, Any]:
@@ -466,6 +497,7 @@ def build_grid(
                         stop_after=stop_after,
                         eval_freq=int(eval_freq),
                         eval_episodes=int(eval_episodes),
+                        net_arch=soup_net_arch(params) if stored.algo == "soup" else None,
                     )
                 )
     return specs
