@@ -80,6 +80,14 @@ def check_loadable(data: dict[str, Any], path: Any, kwargs: dict[str, Any]) -> N
         )
 
 
+class NetworksMismatchError(RuntimeError):
+    """
+    Saved parameters that do not fit a model's networks (``set_parameters``, ``SOUP.load``). A ``RuntimeError``, as
+    torch's ``load_state_dict`` raises there, and so SB3's ``set_parameters`` for TD3 and DDPG; not a ``ValueError``,
+    which SB3's ``load`` takes for its patch of old DQN files and replaces by ``KeyError: 'policy.optimizer'``.
+    """
+
+
 class CheckedLoading(OffPolicyAlgorithm):
     """SB3's loading of an off-policy algorithm, with the checks of SOUP's files (SOUP's base class)."""
 
@@ -110,16 +118,22 @@ class CheckedLoading(OffPolicyAlgorithm):
     def set_parameters(
         self, load_path_or_dict: str | dict[str, Any], exact_match: bool = True, device: th.device | str = "auto"
     ) -> None:
-        """SB3's ``set_parameters``, saying what to do when the saved networks have other shapes (``SOUP.load``)."""
+        """
+        SB3's ``set_parameters``, saying what to do when the saved networks have other shapes (``SOUP.load``, without
+        a ``custom_objects`` that changes ``policy_kwargs``).
+
+        :raises NetworksMismatchError: the saved parameters have other shapes than this model's
+        """
         try:
             super().set_parameters(load_path_or_dict, exact_match, device)
         except RuntimeError as error:
             mismatches = [line.strip() for line in str(error).splitlines() if "size mismatch" in line]
             if not mismatches:
                 raise
-            raise ValueError(
+            raise NetworksMismatchError(
                 f"the saved parameters do not fit this model's networks (other head counts or net_arch?): {mismatches[0]} "
-                f"({len(mismatches)} mismatches). SOUP.load builds a model as it was saved"
+                f"({len(mismatches)} mismatches). SOUP.load builds a model as it was saved, unless custom_objects gives "
+                "other policy_kwargs"
             ) from error
 
     def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:

@@ -247,9 +247,24 @@ def test_replay_buffers_that_do_not_fit_are_refused(saved, tmp_path):
     assert model.replay_buffer.size() == 40 and model.replay_buffer.masks.shape == (300, 1, 3)
 
 
+def test_custom_objects_with_other_networks_get_the_clear_error_not_sb3s_key_error(saved):
+    """SB3's load takes a ValueError from set_parameters for its patch of old DQN files (KeyError 'policy.optimizer')."""
+    other = dict(net_arch=dict(pi_body=[8], pi_head=[8], qf_body=[8, 8], qf_head=[8], qf_action_layer=0))
+    with pytest.raises(RuntimeError, match=r"do not fit this model's networks .*critic.* unless custom_objects gives"):
+        SOUP.load(saved / "model.zip", custom_objects={"policy_kwargs": other})
+    # as TD3's load: a RuntimeError, naming the mismatch
+    td3 = TD3("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]))
+    td3.save(saved / "td3.zip")
+    with pytest.raises(RuntimeError, match=r"size mismatch"):
+        TD3.load(saved / "td3.zip", custom_objects={"policy_kwargs": dict(net_arch=[16])})
+    same = dict(TINY["net_arch"], qf_action_layer=1)  # the same networks, said otherwise: loads
+    assert SOUP.load(saved / "model.zip", custom_objects={"policy_kwargs": dict(net_arch=same)}).n_heads == 3
+
+
 def test_set_parameters_from_a_model_with_other_heads_says_to_use_load(saved):
     five_heads = SOUP("MlpPolicy", "Pendulum-v1", n_heads=5, **SMALL)
-    with pytest.raises(ValueError, match=r"do not fit this model's networks .*torch.Size\(\[3, 8, 8\]\).* SOUP.load builds"):
+    # a RuntimeError, as TD3's set_parameters raises (torch's load_state_dict)
+    with pytest.raises(RuntimeError, match=r"do not fit this model's networks .*torch.Size\(\[3, 8, 8\]\).* SOUP.load builds"):
         five_heads.set_parameters(str(saved / "model.zip"))
     three_heads = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, **SMALL)
     three_heads.set_parameters(str(saved / "model.zip"))  # same shapes: loads
