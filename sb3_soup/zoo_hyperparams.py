@@ -9,12 +9,15 @@ from typing import Any
 
 from sb3_soup.noise import DECAYING_NORMAL, zoo_action_noise
 
-# Bodies and heads of actor (pi) and critic (qf); "paper" is SOUP's default (Section 5 of the paper).
-NET_ARCHS: dict[str, dict[str, list[int]]] = {
-    "small": dict(pi_body=[64], pi_head=[64], qf_body=[64, 64], qf_head=[64]),
-    "paper": dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128]),
-    "big": dict(pi_body=[400], pi_head=[300], qf_body=[400, 300], qf_head=[300]),
+# Bodies and heads of actor (pi) and critic (qf); "paper" is SOUP's default (Section 5 of the paper). Each states where the
+# action joins the critic as trials sampled before qf_action_layer joined the space trained it: at the second layer.
+NET_ARCHS: dict[str, dict[str, Any]] = {
+    "small": dict(pi_body=[64], pi_head=[64], qf_body=[64, 64], qf_head=[64], qf_action_layer=1),
+    "paper": dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128], qf_action_layer=1),
+    "big": dict(pi_body=[400], pi_head=[300], qf_body=[400, 300], qf_head=[300], qf_action_layer=1),
 }
+# Where the action joins the critic: at its input (0, SB3's and TD3's critic) or at the second body layer (1, the paper's)
+QF_ACTION_LAYERS = (0, 1)
 N_HEADS = (3, 5, 10)
 CONFIDENCES = ("none", "fixed", "decayed", "adaptive", "ucb")
 # The search space of the training scheme (a subset of what SOUP accepts, sb3_soup.arguments; an Optuna study cannot
@@ -31,7 +34,9 @@ SCHEME_BEFORE_0_2_0: dict[str, Any] = dict(policy_delay=1, target_policy_noise=0
 def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     """
     Turn sampled values into SOUP's arguments: ``one_minus_gamma`` -> ``gamma``, ``batch_size_pow`` ->
-    ``batch_size``, ``net_arch`` name -> ``policy_kwargs``, ``train_freq`` -> also ``gradient_steps`` (one gradient
+    ``batch_size``, ``net_arch`` name and ``qf_action_layer`` -> ``policy_kwargs`` (a trial without
+    ``qf_action_layer``, sampled before it joined the space, trained the action at the critic's second layer, which
+    :data:`NET_ARCHS` states), ``train_freq`` -> also ``gradient_steps`` (one gradient
     step per env-step, as in the Zoo's TD3 sampler), ``confidence_lr`` -> ``confidence_kwargs=dict(lr=...)`` (the
     adaptive confidence's learning rate), ``noise_std`` -> also ``noise_type="decaying_normal"`` (the RL Zoo's noise
     keys: the Zoo builds a constant :class:`sb3_soup.DecayingNormalActionNoise` from them, as SOUP's default is). A
@@ -49,7 +54,10 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     if "train_freq" in hyperparams:
         hyperparams["gradient_steps"] = hyperparams["train_freq"]
     if "net_arch" in hyperparams:
-        hyperparams["policy_kwargs"] = dict(net_arch=NET_ARCHS[hyperparams.pop("net_arch")])
+        net_arch = dict(NET_ARCHS[hyperparams.pop("net_arch")])
+        if "qf_action_layer" in hyperparams:  # sampled since it joined the space; before, the arch's own (1)
+            net_arch["qf_action_layer"] = hyperparams.pop("qf_action_layer")
+        hyperparams["policy_kwargs"] = dict(net_arch=net_arch)
     if "confidence_lr" in hyperparams:
         hyperparams["confidence_kwargs"] = dict(lr=hyperparams.pop("confidence_lr"))
     if "noise_std" in hyperparams:  # the Zoo's keys (as --trial-id passes them on): a constant decaying_normal noise
@@ -62,9 +70,9 @@ def convert_soup_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
     """
     Sample SOUP hyper-parameters: the DDPG ones (actor and critic learning rates, batch size, tau, gamma, train
-    frequency, network sizes) and the ensemble's (number of heads, bootstrap mask probability, training scheme and
-    targets, TD3's delay and target smoothing, confidence strategy and the adaptive confidence network's learning
-    rate, exploration noise).
+    frequency, network sizes, where the action joins the critic) and the ensemble's (number of heads, bootstrap mask
+    probability, training scheme and targets, TD3's delay and target smoothing, confidence strategy and the adaptive
+    confidence network's learning rate, exploration noise).
 
     :param trial: the optuna trial
     :param n_actions: size of the action space (of the exploration noise)
@@ -81,6 +89,7 @@ def sample_soup_params(trial: Any, n_actions: int, n_envs: int, additional_args:
         "tau": trial.suggest_float("tau", 0.001, 0.08, log=True),
         "train_freq": trial.suggest_int("train_freq", 1, 10),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCHS)),
+        "qf_action_layer": trial.suggest_categorical("qf_action_layer", list(QF_ACTION_LAYERS)),
         "n_heads": trial.suggest_categorical("n_heads", list(N_HEADS)),
         "mask_prob": trial.suggest_float("mask_prob", 0.3, 1.0),
         "noise_std": trial.suggest_float("noise_std", 0.05, 0.5),

@@ -251,7 +251,7 @@ def test_sampled_hyperparameters_build_soup():
     from sb3_soup.zoo_hyperparams import convert_soup_params, sample_soup_params
 
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0), direction="maximize")
-    seen = set()
+    seen, seen_layers = set(), set()
     for _ in range(12):
         trial = study.ask()
         kwargs = sample_soup_params(trial, n_actions=1, n_envs=1, additional_args={})
@@ -264,11 +264,13 @@ def test_sampled_hyperparameters_build_soup():
         assert kwargs["gradient_steps"] == kwargs["train_freq"]
         assert ("confidence_kwargs" in kwargs) == (kwargs["confidence"] == "adaptive")
         assert kwargs["policy_delay"] in (1, 2) and kwargs["target_policy_noise"] in (0.0, 0.2)
+        assert kwargs["policy_kwargs"]["net_arch"]["qf_action_layer"] == trial.params["qf_action_layer"]
         seen.add(kwargs["confidence"])
+        seen_layers.add(trial.params["qf_action_layer"])
         model = SOUP(env=ENV_ID, policy="MlpPolicy", buffer_size=1000, **converted)
         assert model.policy is not None
         study.tell(trial, 0.0)
-    assert len(seen) > 1
+    assert len(seen) > 1 and seen_layers == {0, 1}
 
 
 def test_a_trial_sampled_before_the_delay_and_smoothing_joined_the_space_is_rebuilt_as_it_trained():
@@ -278,6 +280,18 @@ def test_a_trial_sampled_before_the_delay_and_smoothing_joined_the_space_is_rebu
     assert convert_soup_params(old_trial) == dict(old_trial, policy_delay=1, target_policy_noise=0.0)
     new_trial = dict(old_trial, policy_delay=2, target_policy_noise=0.2)
     assert convert_soup_params(new_trial) == new_trial
+
+
+def test_a_trial_sampled_before_the_critics_action_layer_joined_the_space_is_rebuilt_as_it_trained():
+    from sb3_soup.zoo_hyperparams import convert_soup_params
+
+    def action_layer(trial: dict) -> int:
+        return convert_soup_params(trial)["policy_kwargs"]["net_arch"]["qf_action_layer"]
+
+    for net_arch in ("small", "paper", "big"):
+        # before: the action at the critic's second layer, whatever the default
+        assert action_layer(dict(net_arch=net_arch)) == 1
+        assert action_layer(dict(net_arch=net_arch, qf_action_layer=0)) == 0
 
 
 def test_installed_distribution_ships_the_pth_file():
