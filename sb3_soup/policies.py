@@ -51,7 +51,7 @@ def _split_hidden_layers(sizes: list[int]) -> tuple[list[int], list[int]]:
     return sizes[:-1], sizes[-1:]
 
 
-def parse_net_arch(net_arch: NetArch | None) -> dict[str, Any]:
+def parse_net_arch(net_arch: NetArch | None, default_action_layer: int | None = None) -> dict[str, Any]:
     """
     ``net_arch`` in SOUP's form: the shared bodies and the K heads of actor and critic, and where the action joins the
     critic. Three forms are accepted:
@@ -68,6 +68,8 @@ def parse_net_arch(net_arch: NetArch | None) -> dict[str, Any]:
     ``ContinuousCritic``. With one head, the networks are SB3's.
 
     :param net_arch: one of the forms above, or None (the default)
+    :param default_action_layer: ``qf_action_layer`` where SOUP's form leaves it out (``None``:
+        :data:`DEFAULT_ACTION_LAYER`), e.g. the default of an earlier version, to read what one of its runs built
     :return: SOUP's form, every key set
     """
     if net_arch is None:
@@ -100,7 +102,8 @@ def parse_net_arch(net_arch: NetArch | None) -> dict[str, Any]:
     arch: dict[str, Any] = {}
     for key, default in DEFAULT_NET_ARCH.items():
         arch[key] = _layer_sizes(f"net_arch[{key!r}]", net_arch.get(key, default), default)
-    action_layer = net_arch.get("qf_action_layer", DEFAULT_ACTION_LAYER)
+    default_layer = DEFAULT_ACTION_LAYER if default_action_layer is None else default_action_layer
+    action_layer = net_arch.get("qf_action_layer", default_layer)
     is_int = isinstance(action_layer, (int, np.integer)) and not isinstance(action_layer, (bool, np.bool_))
     if not is_int or action_layer not in (0, 1):
         raise ValueError(

@@ -235,10 +235,7 @@ def soup_net_arch(hyperparams: dict[str, Any], default_action_layer: int | None 
     from sb3_soup.policies import parse_net_arch
 
     net_arch = (resolve_policy_kwargs(hyperparams.get("policy_kwargs")) or {}).get("net_arch")
-    soup_form = net_arch is None or (isinstance(net_arch, dict) and not {"pi", "qf"} & set(net_arch))
-    if default_action_layer is not None and soup_form:
-        net_arch = {"qf_action_layer": default_action_layer, **(net_arch or {})}
-    return parse_net_arch(net_arch)
+    return parse_net_arch(net_arch, default_action_layer)
 
 
 def soup_defaults() -> dict[str, Any]:
