@@ -264,6 +264,30 @@ def test_partial_report_aggregates_a_model_over_the_tasks_it_has_complete(hand_m
     assert _table_row(text, "soup_x †")[:3] == ["soup_x †", "1/2", "2"] and "† Partial" in text
 
 
+def test_a_candidate_is_weighed_against_the_models_named_by_improvement_over(hand_made, tmp_path):
+    tasks = ["Pendulum-v1", "Hopper-v4"]
+    data = screen.screen_report(
+        hand_made, tmp_path / "report", tasks=tasks, partial=True, improvement_over=["soup_x"], reps=REPS
+    )
+    assert data["improvement_over"] == ["soup_x"]
+    # on Pendulum-v1, soup_x's one complete task: DDPG's 0.5, 1.0 against soup_x's 1.0, 1.0 (none higher, one tie)
+    ddpg = data["aggregate"]["ddpg_zoo"]["probability_of_improvement"]
+    assert list(ddpg) == ["soup_x"] and ddpg["soup_x"]["value"] == pytest.approx(0.25) and ddpg["soup_x"]["tasks"] == tasks[:1]
+    assert data["aggregate"]["soup_x"]["probability_of_improvement"] == {}  # not over itself
+    text = (tmp_path / "report" / screen.REPORT_FILE).read_text()
+    assert "| P(> soup_x) [95% CI] | Worst task |" in text and "P(> TD3 (RL Zoo))" not in text
+    assert _table_row(text, "soup_x †")[5] == "(itself)"
+    ddpg_cell = _table_row(text, "DDPG (RL Zoo)")[5]
+    assert ddpg_cell.startswith("0.25 [") and ddpg_cell.endswith("(1 tasks)")
+    assert set(json.loads((tmp_path / "report" / "improvement.json").read_text())) == {
+        "TD3 (RL Zoo),soup_x",
+        "DDPG (RL Zoo),soup_x",
+    }
+    # a model not in the report is refused, naming the reported ones
+    with pytest.raises(ValueError, match=r"improvement_over must name one or more of the reported models \['soup_x'\]"):
+        screen.screen_report(hand_made, tmp_path / "other", tasks=tasks, models=["soup_x"], improvement_over=["td3_zoo"])
+
+
 def test_report_on_a_screen_without_a_complete_model(hand_made, tmp_path):
     tasks = ["Pendulum-v1", "Hopper-v4"]
     data = screen.screen_report(hand_made, tmp_path / "report", tasks=tasks, models=["soup_x"], reps=REPS)
@@ -306,10 +330,11 @@ def test_screen_command_runs_resumably_and_reports(tmp_path, capsys):
     assert [run["model"] for run in grid["runs"]] == ["td3_zoo"] and "benchmark" in grid["suites"]
 
     assert main(["screen", "report", str(root), "--partial", "--to", str(tmp_path / "report"), "--tasks", "Pendulum-v1",
-                 "--reps", str(REPS)]) == 0  # fmt: skip
+                 "--reps", str(REPS), "--improvement-over", "td3_zoo"]) == 0  # fmt: skip
     printed = capsys.readouterr().out
     assert "- `td3_zoo` on Pendulum-v1: seed 0: interrupted at step 100/20000" in printed
     assert not (tmp_path / "report" / screen.RANDOM_SCORES_FILE).exists()  # read from the root's cache
+    assert json.loads((tmp_path / "report" / screen.DATA_FILE).read_text())["improvement_over"] == ["td3_zoo"]
     assert main(["screen", "tasks"]) == 0 and "| Hopper-v4 | 50000 | 10000 |" in capsys.readouterr().out
 
 

@@ -233,6 +233,12 @@ def _add_screen_parser(commands: Any) -> None:
         "--seeds", type=_seeds, help="the seeds every model should have (default: per model, those it has on any task)"
     )
     report.add_argument("--reps", type=int, default=10_000, help="bootstrap resamples of the intervals (default: 10000)")
+    report.add_argument(
+        "--improvement-over",
+        type=_csv,
+        help="the models each model's probability of improvement is over, comma-separated, among those reported "
+        "(default: td3_zoo,ddpg_zoo, those present; e.g. soup_defaults to weigh a candidate against the defaults)",
+    )
 
     actions.add_parser("tasks", help="the suite's tasks, budgets and warm-ups")
 
@@ -412,7 +418,7 @@ def screen_command(args: argparse.Namespace) -> int:
 
         data = screen_report(
             args.root, args.report_dir, tasks=args.tasks, models=args.models, seeds=args.seeds, partial=args.partial,
-            reps=args.reps,
+            reps=args.reps, improvement_over=args.improvement_over,
         )  # fmt: skip
         print((Path(data["report_dir"]) / REPORT_FILE).read_text())
         print("Wrote " + ", ".join(data["files"]) + f" in {data['report_dir']}")

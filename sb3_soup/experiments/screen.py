@@ -10,7 +10,8 @@ The screening suite's report (``screen report``): each model's runs on the tasks
   0 is random and 1 is TD3 on every task.
 - **Aggregate**, per model over the tasks where it is complete (every expected seed scored) and the reference is too:
   rliable's IQM and mean of the normalised scores with stratified-bootstrap 95% intervals, the probability of
-  improvement over TD3 and over DDPG (over the tasks both models have complete), the worst task's mean, and
+  improvement over TD3 and over DDPG, or over the models asked for (over the tasks both models have complete), the
+  worst task's mean, and
   performance profiles. Without ``partial``, a model joins the aggregate only once it is complete on every task.
 
 Missing, unfinished, failed or off-protocol runs are listed, never dropped silently. The random policy's scores are
@@ -44,7 +45,8 @@ from sb3_soup.experiments.runner import read_json, write_json
 RANDOM_SCORES_FILE = "random_scores.json"
 RANDOM_EPISODES = 100
 RANDOM_SEED = 0
-# The probability of improvement is reported over these two (the reference, and SB3's DDPG as the Zoo trains it).
+# By default the probability of improvement is reported over these two (the reference, and SB3's DDPG as the Zoo
+# trains it); ``screen report --improvement-over`` names others (e.g. SOUP's defaults, to weigh a candidate against them).
 IMPROVEMENT_OVER = (SCREEN_REFERENCE, "ddpg_zoo")
 REPORT_FILE = "screen.md"
 DATA_FILE = "screen.json"
@@ -323,11 +325,14 @@ class Screen:
         return self.normalise(env_id, float(np.mean(scores))) if scores else None  # normalising is linear
 
 
-def aggregate_screen(screen: Screen, partial: bool, reps: int) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def aggregate_screen(
+    screen: Screen, partial: bool, reps: int, improvement_over: Sequence[str] = IMPROVEMENT_OVER
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """
     :param screen: the screen
     :param partial: see :func:`screen_report`
     :param reps: bootstrap resamples
+    :param improvement_over: the models each model's probability of improvement is computed over (those in the screen)
     :return: model -> its aggregate (the IQM and mean with their intervals, the probabilities of improvement, the
         worst task), for the models in it; and model -> the ``(seeds, tasks)`` matrix it was computed from
     """
@@ -340,7 +345,7 @@ def aggregate_screen(screen: Screen, partial: bool, reps: int) -> tuple[dict[str
         per_task = dict(zip(tasks[model], matrix.mean(axis=0).tolist(), strict=True))
         worst = min(per_task, key=per_task.__getitem__)
         improvement = {}
-        for other in IMPROVEMENT_OVER:
+        for other in improvement_over:
             if other == model or other not in screen.cells or (not partial and other not in entered):
                 continue
             shared = [env_id for env_id in tasks[model] if env_id in tasks[other]]
@@ -371,6 +376,7 @@ def screen_report(
     partial: bool = False,
     reps: int = evaluation.DEFAULT_REPS,
     random_episodes: int = RANDOM_EPISODES,
+    improvement_over: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """
     Score, normalise and aggregate a screen's runs; write ``screen.md``, ``screen.json`` and the figures, each with the
@@ -388,6 +394,8 @@ def screen_report(
         (marked); default: only models complete on every task enter the aggregate
     :param reps: bootstrap resamples of the intervals (the performance profiles' bands use a fifth, the curves a twentieth)
     :param random_episodes: the random policy's episodes per task
+    :param improvement_over: the models each model's probability of improvement is over, among the reported ones
+        (default: :data:`IMPROVEMENT_OVER`, TD3 and DDPG with the RL Zoo's settings, those the report has)
     :return: the data written to ``screen.json``
     """
     root = Path(root)
@@ -397,6 +405,13 @@ def screen_report(
     order, labels, cells = collect_screen(root, suite, models, seeds)
     if not order:
         raise FileNotFoundError(f"No runs of the screen's tasks in {root} (expected {root}/<env_id>/<model>/seed_<n>)")
+    if improvement_over is None:
+        improvement_over = [model for model in IMPROVEMENT_OVER if model in order]
+    elif not improvement_over or any(model not in order for model in improvement_over):
+        raise ValueError(
+            f"improvement_over must name one or more of the reported models {order}, got {list(improvement_over)} "
+            "(a model left out of --models is not reported)"
+        )
     randoms = random_scores([task.env_id for task in suite], [root, target], target, episodes=random_episodes)
     references = {}
     for env_id, cell in cells.get(SCREEN_REFERENCE, {}).items():
@@ -404,7 +419,7 @@ def screen_report(
         if scores:
             references[env_id] = {"mean": float(np.mean(scores)), "runs": len(scores), "complete": cell.complete}
     screen = Screen(root, suite, order, labels, cells, randoms, references)
-    aggregate, matrices = aggregate_screen(screen, partial, reps)
+    aggregate, matrices = aggregate_screen(screen, partial, reps, improvement_over)
     figures = _figures(target, screen, aggregate, matrices, reps) + _curve_figure(target, screen, max(1, reps // 20))
     data = {
         "root": str(root),
@@ -412,6 +427,7 @@ def screen_report(
         "protocol": {"eval_freq": SCREEN_EVAL_FREQ, "eval_episodes": SCREEN_EVAL_EPISODES},
         "reference": SCREEN_REFERENCE,
         "partial": partial,
+        "improvement_over": list(improvement_over),
         "random": {env_id: {k: v for k, v in value.items() if k != "returns"} for env_id, value in randoms.items()},
         "references": references,
         "models": order,
@@ -435,7 +451,12 @@ def screen_report(
         "report_dir": str(target),
     }
     text = "\n".join(
-        [*_intro(screen), *_aggregate_lines(screen, aggregate, partial, reps), *_task_lines(screen), *_missing_lines(screen)]
+        [
+            *_intro(screen),
+            *_aggregate_lines(screen, aggregate, partial, reps, improvement_over),
+            *_task_lines(screen),
+            *_missing_lines(screen),
+        ]
     )
     (target / REPORT_FILE).write_text(text + "\n")
     (target / DATA_FILE).write_text(json.dumps(data, indent=2))
@@ -477,9 +498,11 @@ def _intro(screen: Screen) -> list[str]:
     ]
 
 
-def _aggregate_lines(screen: Screen, aggregate: dict[str, Any], partial: bool, reps: int) -> list[str]:
+def _aggregate_lines(
+    screen: Screen, aggregate: dict[str, Any], partial: bool, reps: int, improvement_over: Sequence[str]
+) -> list[str]:
     """The aggregate's table and its notes."""
-    over = [other for other in IMPROVEMENT_OVER if other in screen.labels]
+    over = list(improvement_over)
     lines = ["## Aggregate: normalised scores over tasks (rliable)", ""]
     if not aggregate and partial:
         lines.append(f"No model has every seed on a task where {_reference_label(screen)} has runs yet.")
