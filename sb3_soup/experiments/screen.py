@@ -11,8 +11,8 @@ The screening suite's report (``screen report``): each model's runs on the tasks
 - **Aggregate**, per model over the tasks where it is complete (every expected seed scored) and the reference is too:
   rliable's IQM and mean of the normalised scores with stratified-bootstrap 95% intervals, the probability of
   improvement over TD3 and over DDPG, or over the models asked for (over the tasks both models have complete), the
-  worst task's mean, and
-  performance profiles. Without ``partial``, a model joins the aggregate only once it is complete on every task.
+  worst task's mean, and performance profiles. Without ``partial``, a model joins the aggregate only once it is
+  complete on every task.
 
 Missing, unfinished, failed or off-protocol runs are listed, never dropped silently. The random policy's scores are
 cached in ``ROOT/random_scores.json`` (written by ``screen run``); the report reads them there or in its own folder,
@@ -326,13 +326,13 @@ class Screen:
 
 
 def aggregate_screen(
-    screen: Screen, partial: bool, reps: int, improvement_over: Sequence[str] = IMPROVEMENT_OVER
+    screen: Screen, partial: bool, reps: int, improvement_over: Sequence[str]
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """
     :param screen: the screen
     :param partial: see :func:`screen_report`
     :param reps: bootstrap resamples
-    :param improvement_over: the models each model's probability of improvement is computed over (those in the screen)
+    :param improvement_over: the models each model's probability of improvement is computed over (see :func:`screen_report`)
     :return: model -> its aggregate (the IQM and mean with their intervals, the probabilities of improvement, the
         worst task), for the models in it; and model -> the ``(seeds, tasks)`` matrix it was computed from
     """
