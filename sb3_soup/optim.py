@@ -28,7 +28,17 @@ class EnsembleAdam(th.optim.Optimizer):
     :param lr: learning rate
     :param betas: coefficients of the running averages of the gradient and its square
     :param eps: term added to the denominator
-    :param weight_decay: L2 penalty (added to the gradient, as ``torch.optim.Adam``)
+    :param weight_decay: L2 penalty (added to the gradient, as ``torch.optim.Adam``; see ``decoupled_weight_decay``)
+    :param amsgrad: AMSGrad: divide by the running maximum of the second moment (per head, as ``torch.optim.Adam``)
+    :param foreach: accepted for ``torch.optim.Adam``'s signature; torch's choice of kernels, which
+        ``EnsembleAdam`` makes itself (``fused``)
+    :param maximize: maximise the objective instead of minimising it
+    :param capturable: ``False`` only (CUDA-graph capture is not supported)
+    :param differentiable: ``False`` only (differentiating through the step is not supported)
+    :param fused: ``None`` (default) runs torch's fused Adam kernel on devices that have it and a per-parameter
+        update elsewhere; ``True`` requires the kernel; ``False`` always runs the per-parameter update
+    :param decoupled_weight_decay: AdamW: shrink the parameters by ``lr * weight_decay`` instead of adding the
+        penalty to the gradient
     """
 
     def __init__(
@@ -38,6 +48,14 @@ class EnsembleAdam(th.optim.Optimizer):
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-8,
         weight_decay: float = 0.0,
+        amsgrad: bool = False,
+        *,
+        foreach: bool | None = None,
+        maximize: bool = False,
+        capturable: bool = False,
+        differentiable: bool = False,
+        fused: bool | None = None,
+        decoupled_weight_decay: bool = False,
     ):
         if lr < 0.0:
             raise ValueError(f"Invalid learning rate: {lr}, expected lr >= 0")
@@ -45,7 +63,37 @@ class EnsembleAdam(th.optim.Optimizer):
             raise ValueError(f"Invalid betas: {betas}, expected each in [0, 1)")
         if eps < 0.0:
             raise ValueError(f"Invalid eps: {eps}, expected eps >= 0")
-        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, weight_decay=weight_decay, heads=False))
+        if weight_decay < 0.0:
+            raise ValueError(f"Invalid weight_decay: {weight_decay}, expected weight_decay >= 0")
+        for name, value in (("capturable", capturable), ("differentiable", differentiable)):
+            if value:
+                raise ValueError(
+                    f"EnsembleAdam supports {name}=False only, got {name}={value!r}; pass "
+                    "policy_kwargs=dict(optimizer_class=torch.optim.Adam) for it (which also moves the heads a step "
+                    "does not train)"
+                )
+        defaults = dict(
+            lr=lr,
+            betas=tuple(betas),
+            eps=eps,
+            weight_decay=weight_decay,
+            amsgrad=bool(amsgrad),
+            foreach=foreach,
+            maximize=bool(maximize),
+            fused=fused,
+            decoupled_weight_decay=bool(decoupled_weight_decay),
+            heads=False,
+        )
+        super().__init__(params, defaults)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # a state saved before EnsembleAdam took these options: torch.optim.Adam's defaults, as it trained
+        super().__setstate__(state)
+        for group in self.param_groups:
+            for key in ("amsgrad", "maximize", "decoupled_weight_decay"):
+                group.setdefault(key, False)
+            group.setdefault("foreach", None)
+            group.setdefault("fused", None)
 
     @th.no_grad()
     def step(self, closure: Any = None, head: int | th.Tensor | None = None) -> Any:  # type: ignore[override]
@@ -80,6 +128,8 @@ class EnsembleAdam(th.optim.Optimizer):
             state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
             # one step count per head; float so that load_state_dict casts it with the other state tensors
             state["n_steps"] = th.zeros((param.shape[0],) if group["heads"] else (), dtype=param.dtype, device=param.device)
+        if group["amsgrad"] and "max_exp_avg_sq" not in state:
+            state["max_exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
         return state
 
     def _adam_update_rows(self, group: dict[str, Any], params: list[th.Tensor], rows: Any) -> None:
@@ -92,7 +142,10 @@ class EnsembleAdam(th.optim.Optimizer):
         """
         if not params:
             return
-        if params[0].device.type not in FUSED_DEVICES:
+        has_kernel = params[0].device.type in FUSED_DEVICES
+        if group["fused"] and not has_kernel:
+            raise RuntimeError(f"fused=True: torch has no fused Adam kernel on {params[0].device}; pass fused=None or False")
+        if group["fused"] is False or not has_kernel:
             for param in params:
                 self._adam_update(group, param, rows, None)
             return
@@ -104,37 +157,41 @@ class EnsembleAdam(th.optim.Optimizer):
                 return [tensor]
             return tensor.unbind(0) if rows is ... else [tensor[rows]]
 
-        lists: list[list[th.Tensor]] = [[], [], [], [], []]  # values, grads, exp_avgs, exp_avg_sqs, n_steps
+        keys = ("exp_avg", "exp_avg_sq", "n_steps") + (("max_exp_avg_sq",) if group["amsgrad"] else ())
+        # values, grads, exp_avgs, exp_avg_sqs, n_steps[, max_exp_avg_sqs]
+        lists: list[list[th.Tensor]] = [[] for _ in range(2 + len(keys))]
         for param in params:
             state = self._state(group, param)
-            for pieces, tensor in zip(lists, (param, param.grad, state["exp_avg"], state["exp_avg_sq"], state["n_steps"])):
+            for pieces, tensor in zip(lists, (param, param.grad, *(state[key] for key in keys))):
                 pieces.extend(split(tensor))
-        values, grads, exp_avgs, exp_avg_sqs, n_steps = lists
+        values, grads, exp_avgs, exp_avg_sqs, n_steps, *max_exp_avg_sqs = lists
         th._foreach_add_(n_steps, 1)
         beta1, beta2 = group["betas"]
-        th._fused_adam_(
+        adam = th._fused_adamw_ if group["decoupled_weight_decay"] else th._fused_adam_
+        adam(
             values,
             grads,
             exp_avgs,
             exp_avg_sqs,
-            [],
+            max_exp_avg_sqs[0] if max_exp_avg_sqs else [],
             n_steps,
             lr=group["lr"],
             beta1=beta1,
             beta2=beta2,
             weight_decay=group["weight_decay"],
             eps=group["eps"],
-            amsgrad=False,
-            maximize=False,
+            amsgrad=group["amsgrad"],
+            maximize=group["maximize"],
         )
 
     def _adam_update(self, group: dict[str, Any], param: th.Tensor, rows: Any, row_mask: th.Tensor | None) -> None:
         beta1, beta2 = group["betas"]
+        lr, weight_decay = group["lr"], group["weight_decay"]
         state = self._state(group, param)
         value, grad = param[rows], param.grad[rows]  # type: ignore[index]
         exp_avg, exp_avg_sq, n_steps = state["exp_avg"][rows], state["exp_avg_sq"][rows], state["n_steps"][rows]
-        if group["weight_decay"] != 0:
-            grad = grad.add(value, alpha=group["weight_decay"])
+        if group["maximize"]:
+            grad = -grad
         # (K, 1, ..., 1): broadcasts a per-head quantity over each head's parameter dims
         per_head_shape = n_steps.shape + (1,) * (value.dim() - n_steps.dim())
         # 1 for the rows to update, 0 for the rows to leave as they are
@@ -144,13 +201,21 @@ class EnsembleAdam(th.optim.Optimizer):
             update = row_mask.to(value.dtype).reshape(per_head_shape)
         else:
             n_steps += 1
+        if weight_decay != 0 and group["decoupled_weight_decay"]:
+            value.mul_(1 - lr * weight_decay * update)
+        elif weight_decay != 0:
+            grad = grad.add(value, alpha=weight_decay)
         exp_avg.lerp_(grad, (1 - beta1) * update)
         exp_avg_sq.mul_(1 - (1 - beta2) * update).addcmul_(grad * update, grad, value=1 - beta2)
+        second_moment = exp_avg_sq
+        if group["amsgrad"]:
+            # rows left out: their exp_avg_sq is unchanged and never above their running maximum
+            second_moment = th.maximum(state["max_exp_avg_sq"][rows], exp_avg_sq, out=state["max_exp_avg_sq"][rows])
         steps = n_steps.clamp(min=1).reshape(per_head_shape)
         bias_correction1 = 1 - beta1**steps
         bias_correction2_sqrt = (1 - beta2**steps).sqrt()
-        denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(group["eps"])
-        value.addcdiv_(exp_avg * update, denom * bias_correction1, value=-group["lr"])
+        denom = (second_moment.sqrt() / bias_correction2_sqrt).add_(group["eps"])
+        value.addcdiv_(exp_avg * update, denom * bias_correction1, value=-lr)
 
 
 def ensemble_param_groups(body: list[th.Tensor], heads: list[th.Tensor]) -> list[dict[str, Any]]:

@@ -304,6 +304,7 @@ class SOUPPolicy(BasePolicy):
     :param optimizer_class: The optimizer to use (``EnsembleAdam`` keeps per-head state, so training one head
         leaves the others untouched)
     :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+        (``EnsembleAdam`` takes ``torch.optim.Adam``'s)
     :param share_features_extractor: one features extractor for the actor, the critic and the adaptive confidence
         network, as SB3's ``share_features_extractor``: the actor's loss trains it (the critic and the confidence
         network read its features without gradient) and the actor's soft update moves its target. False (the default,

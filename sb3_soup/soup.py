@@ -191,7 +191,7 @@ class SOUP(CheckedLoading):
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),  # a copy: the masks' arguments are added to it
             optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
+            n_steps=args["n_steps"],
             policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,

@@ -6,7 +6,9 @@ its own, each confidence strategy its own), so that every argument is refused al
 Every check raises a ``ValueError`` that names the parameter, the accepted values and what was given (value and type),
 e.g. ``alpha must be a float in (0, 1) (FixedConfidence's confidence of a head in its own candidate), got '0.5'
 (str)``.
-Python and NumPy numbers are accepted alike (``np.float32(0.5)``, ``np.int64(3)``); ``bool`` is never taken for a number.
+Python and NumPy numbers are accepted alike (``np.float32(0.5)``, ``np.int64(3)``), and an integer given as a float
+(``2.0``, as YAML or a sampler may give it; TD3 takes ``policy_delay=2.0``) as that integer; ``bool`` is never taken for a
+number.
 """
 
 import math
@@ -35,6 +37,13 @@ def is_int(value: Any) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
+def is_integral(value: Any) -> bool:
+    """An integer, or a float that holds one (``2.0``)."""
+    if isinstance(value, (float, np.floating)):
+        return math.isfinite(value) and float(value).is_integer()
+    return is_int(value)
+
+
 def interval(low: float, high: float, low_open: bool, high_open: bool) -> str:
     """``(0, 1]``-style text of an interval."""
 
@@ -51,7 +60,7 @@ def integer(minimum: int, meaning: str = "") -> Rule:
     """An integer >= ``minimum``."""
 
     def rule(name: str, value: Any) -> int:
-        if not is_int(value) or value < minimum:
+        if not is_integral(value) or value < minimum:
             raise ValueError(f"{name} must be an integer >= {minimum}{_meaning(meaning)}, {given(value)}")
         return int(value)
 
@@ -131,7 +140,7 @@ def any_integer(meaning: str = "") -> Rule:
     """An integer, of any sign."""
 
     def rule(name: str, value: Any) -> int:
-        if not is_int(value):
+        if not is_integral(value):
             raise ValueError(f"{name} must be an integer{_meaning(meaning)}, {given(value)}")
         return int(value)
 

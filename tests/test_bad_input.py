@@ -137,7 +137,7 @@ INVALID = [
     (dict(policy_delay=0), "policy_delay", "integer >= 1"),
     (dict(target_policy_noise=-0.1), "target_policy_noise", re.escape("a float in [0, inf)")),
     (dict(target_noise_clip=float("nan")), "target_noise_clip", re.escape("a float in [0, inf)")),
-    (dict(buffer_size=1.5e6), "buffer_size", re.escape("an integer (replay buffer size)")),
+    (dict(buffer_size=1000.5), "buffer_size", re.escape("an integer (replay buffer size)")),
     (dict(critic_learning_rate=0.0), "critic_learning_rate", "a float > 0 or a schedule"),
     (dict(action_noise=0.1), "action_noise", "None .* or an instance of stable_baselines3.common.noise.ActionNoise"),
     (dict(seed=-1), "seed", re.escape("None or an integer in [0, 2**32 - 1]")),
@@ -160,6 +160,12 @@ INVALID = [
     (dict(policy_kwargs=dict(activation_fn=th.nn.ReLU())), "activation_fn", re.escape("an nn.Module class")),
     (dict(policy_kwargs=dict(n_critic_heads=3)), "policy_kwargs", re.escape("set them as SOUP arguments")),
     (dict(policy_kwargs=dict(nett_arch={})), "policy_kwargs", re.escape("SOUPPolicy accepts ['activation_fn'")),
+    (
+        dict(policy_kwargs=dict(optimizer_kwargs=dict(capturable=True))),
+        "capturable",
+        "False only.*optimizer_class=torch.optim.Adam",
+    ),
+    (dict(policy_kwargs=dict(optimizer_kwargs=dict(differentiable=True))), "differentiable", "False only"),
 ]
 
 
@@ -225,6 +231,12 @@ def test_numpy_scalars_are_accepted_and_stored_as_python_numbers():
     assert (model.n_heads, model.n_actor_heads, model.policy.confidence.alpha, model.batch_size) == (3, 3, 0.25, 16)
     assert type(model.n_heads) is int and type(model.policy.confidence.alpha) is float and type(model.check_finite) is bool
     assert model.policy.net_arch["pi_body"] == [8]
+
+
+def test_integers_given_as_floats_are_taken_as_those_integers():  # YAML's 1.0e+3, a sampler's 2.0; TD3 takes policy_delay=2.0
+    model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3.0, policy_delay=np.float64(2), buffer_size=1.0e3, n_steps=1.0)
+    assert (model.n_heads, model.policy_delay, model.buffer_size, model.n_steps) == (3, 2, 1000, 1)
+    assert all(type(value) is int for value in (model.n_heads, model.policy_delay, model.buffer_size, model.n_steps))
 
 
 # ---------------------------------------------------------------- custom confidence strategies

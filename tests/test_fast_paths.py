@@ -112,11 +112,15 @@ def adam_reference_step(optimizer: EnsembleAdam, head) -> None:
                     optimizer._adam_update(group, param, rows, None)
 
 
-def make_ensemble_adam(weight_decay: float):
+def make_ensemble_adam(weight_decay: float, **options):
     th.manual_seed(0)
     body = [nn.Parameter(th.randn(5, 3)), nn.Parameter(th.randn(3))]
     heads = [nn.Parameter(th.randn(4, 3, 2)), nn.Parameter(th.randn(4, 1, 2))]
-    return body, heads, EnsembleAdam(ensemble_param_groups(body, heads), lr=1e-2, weight_decay=weight_decay)
+    return body, heads, EnsembleAdam(ensemble_param_groups(body, heads), lr=1e-2, weight_decay=weight_decay, **options)
+
+
+# torch.optim.Adam's options beside lr, betas, eps and weight_decay, which SB3 passes on from optimizer_kwargs
+ADAM_OPTIONS = [{}, dict(amsgrad=True), dict(maximize=True), dict(decoupled_weight_decay=True), dict(fused=False)]
 
 
 def set_gradients(step: int, *parameter_lists: list[th.Tensor]) -> None:
@@ -127,19 +131,23 @@ def set_gradients(step: int, *parameter_lists: list[th.Tensor]) -> None:
             param.grad = grad.clone()
 
 
+@pytest.mark.parametrize("options", ADAM_OPTIONS, ids=str)
 @pytest.mark.parametrize("weight_decay", [0.0, 0.1])
-@pytest.mark.parametrize("head", [None, 0, 2])
-def test_ensemble_adam_is_one_torch_adam_per_head(weight_decay, head):
-    """Every head (and the shared body) trained as by its own ``torch.optim.Adam``, as the paper's K optimizers."""
-    body, heads, ensemble = make_ensemble_adam(weight_decay)
+@pytest.mark.parametrize("head", [None, 0, 2, "mask"])
+def test_ensemble_adam_is_one_torch_adam_per_head(weight_decay, head, options):
+    """Every head (and the shared body) trained as by its own ``torch.optim.Adam``, as the paper's K optimizers, with
+    any of torch Adam's options."""
+    body, heads, ensemble = make_ensemble_adam(weight_decay, **options)
     n_heads = heads[0].shape[0]
     # the reference: the body's parameters and each head's rows as separate parameters, one torch Adam each
     body_ref = [nn.Parameter(p.detach().clone()) for p in body]
     heads_ref = [[nn.Parameter(p.detach()[k].clone()) for p in heads] for k in range(n_heads)]
-    adam = dict(lr=1e-2, weight_decay=weight_decay, fused=True)
+    adam = dict(lr=1e-2, weight_decay=weight_decay, **{"fused": True, **options})
     body_opt = th.optim.Adam(body_ref, **adam)
     head_opts = [th.optim.Adam(params, **adam) for params in heads_ref]
-    trained = range(n_heads) if head is None else [head]
+    if head == "mask":  # a row mask: heads 1 and 3
+        head = th.tensor([k in (1, 3) for k in range(n_heads)])
+    trained = range(n_heads) if head is None else [head] if isinstance(head, int) else head.nonzero()[:, 0].tolist()
     for step in range(5):
         set_gradients(step, body + heads)
         for param, ref in zip(body, body_ref):
@@ -151,22 +159,30 @@ def test_ensemble_adam_is_one_torch_adam_per_head(weight_decay, head):
         body_opt.step()
         for k in trained:
             head_opts[k].step()
+    # a row mask runs the per-parameter update, which orders the arithmetic its own way: equal to float32's rounding
+    same = th.equal if not isinstance(head, th.Tensor) and options.get("fused") is not False else close
     for param, ref in zip(body, body_ref):
-        assert th.equal(param, ref)
+        assert same(param, ref)
     for k in range(n_heads):  # the heads left out kept their values
         for param, ref in zip(heads, heads_ref[k]):
-            assert th.equal(param[k], ref)
+            assert same(param[k], ref)
     _, initial, _ = make_ensemble_adam(weight_decay)
     for param, start in zip(heads, initial):
         for k in range(n_heads):
             assert th.equal(param[k], start[k]) == (k not in trained)
 
 
+def close(a: th.Tensor, b: th.Tensor) -> bool:
+    th.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    return True
+
+
+@pytest.mark.parametrize("options", ADAM_OPTIONS[:4], ids=str)
 @pytest.mark.parametrize("weight_decay", [0.0, 0.1])
 @pytest.mark.parametrize("head", [None, 0, 2])
-def test_ensemble_adam_fused_update_is_the_per_parameter_update(weight_decay, head):
-    body_a, heads_a, fast = make_ensemble_adam(weight_decay)
-    body_b, heads_b, reference = make_ensemble_adam(weight_decay)
+def test_ensemble_adam_fused_update_is_the_per_parameter_update(weight_decay, head, options):
+    body_a, heads_a, fast = make_ensemble_adam(weight_decay, **options)
+    body_b, heads_b, reference = make_ensemble_adam(weight_decay, **options)
     for step in range(5):
         set_gradients(step, body_a + heads_a, body_b + heads_b)
         fast.step(head=head)
@@ -174,7 +190,7 @@ def test_ensemble_adam_fused_update_is_the_per_parameter_update(weight_decay, he
     # the same arithmetic, which the fused kernel orders its own way: equal to float32's rounding
     for a, b in zip(body_a + heads_a, body_b + heads_b):
         th.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-        for key in ("exp_avg", "exp_avg_sq", "n_steps"):
+        for key in fast.state[a]:
             th.testing.assert_close(fast.state[a][key], reference.state[b][key], rtol=1e-5, atol=1e-8)
 
 
@@ -216,3 +232,22 @@ def test_fused_linear_is_functional_linear():
     h, a = th.randn(5, 4), th.randn(5, 2)
     w_obs, w_act = layer.weight.split([4, 2], dim=1)
     th.testing.assert_close(th.addmm(F.linear(h, w_obs, layer.bias), a, w_act.T), layer(th.cat([h, a], dim=1)))
+
+
+def test_ensemble_adam_loads_a_state_saved_before_it_took_torch_adams_options():
+    body_a, heads_a, saved = make_ensemble_adam(0.1)
+    body_b, heads_b, resumed = make_ensemble_adam(0.1)
+    set_gradients(0, body_a + heads_a, body_b + heads_b)
+    saved.step(head=1)
+    resumed.step(head=1)
+    old = resumed.state_dict()
+    for group in old["param_groups"]:  # what EnsembleAdam's groups held before
+        for key in ("amsgrad", "foreach", "maximize", "fused", "decoupled_weight_decay"):
+            del group[key]
+    resumed.load_state_dict(old)
+    assert resumed.param_groups[0]["amsgrad"] is False and resumed.param_groups[0]["fused"] is None
+    set_gradients(1, body_a + heads_a, body_b + heads_b)
+    saved.step(head=2)
+    resumed.step(head=2)
+    for a, b in zip(body_a + heads_a, body_b + heads_b):
+        assert th.equal(a, b)

@@ -112,8 +112,8 @@ class DictPendulum(gym.ObservationWrapper):
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        # n_steps=0 is SB3's one-step TD (tests/test_bad_input.py); SB3 fails on a float without naming n_steps
-        (dict(n_steps=2.0), r"n_steps must be an integer \(steps of the n-step returns"),
+        # n_steps=0 is SB3's one-step TD (tests/test_bad_input.py); 2.0 is 2 (validation.py); SB3 fails on floats
+        (dict(n_steps=2.5), r"n_steps must be an integer \(steps of the n-step returns"),
         (dict(n_steps=3, optimize_memory_usage=True, replay_buffer_kwargs=dict(handle_timeout_termination=False)),
          r"optimize_memory_usage=True is not supported with n-step returns"),
         (dict(replay_buffer_class=NStepReplayBuffer, replay_buffer_kwargs=dict(n_steps=-1)),

@@ -166,6 +166,30 @@ def test_custom_optimizer_and_activation():  # SB3's test_custom_optimizer
     assert isinstance(model.actor.optimizer, th.optim.AdamW) and isinstance(model.critic.optimizer, th.optim.AdamW)
 
 
+@pytest.mark.parametrize(
+    "optimizer_kwargs",
+    [
+        dict(amsgrad=True),
+        dict(maximize=False, foreach=False),
+        dict(fused=False),
+        dict(weight_decay=1e-4, decoupled_weight_decay=True),
+    ],
+    ids=str,
+)
+def test_torch_adams_options_reach_soups_adam(optimizer_kwargs):  # the Zoo's policy_kwargs: optimizer_kwargs for TD3's Adam
+    model = SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(optimizer_kwargs=optimizer_kwargs), **TINY).learn(40)
+    for optimizer in (model.actor.optimizer, model.critic.optimizer):
+        assert all(optimizer.defaults[key] == value for key, value in optimizer_kwargs.items())
+        assert model._n_updates > 0 and all(state["n_steps"].max() > 0 for state in optimizer.state.values())
+
+
+def test_an_integral_float_policy_delay_is_tds():  # TD3 takes policy_delay=2.0 (a YAML or a sampler's float)
+    model = SOUP("MlpPolicy", "Pendulum-v1", policy_delay=2.0, **TINY)
+    assert model.policy_delay == 2 and type(model.policy_delay) is int
+    with pytest.raises(ValueError, match="policy_delay must be an integer >= 1"):
+        SOUP("MlpPolicy", "Pendulum-v1", policy_delay=2.5, **TINY)
+
+
 # ----- learning rates ------------------------------------------------------------------------------------------------
 
 
