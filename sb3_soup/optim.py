@@ -65,6 +65,8 @@ class EnsembleAdam(th.optim.Optimizer):
             raise ValueError(f"Invalid eps: {eps}, expected eps >= 0")
         if weight_decay < 0.0:
             raise ValueError(f"Invalid weight_decay: {weight_decay}, expected weight_decay >= 0")
+        if fused and foreach:
+            raise ValueError("fused and foreach cannot both be True (as torch.optim.Adam): pass one of them")
         for name, value in (("capturable", capturable), ("differentiable", differentiable)):
             if value:
                 raise ValueError(

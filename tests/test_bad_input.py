@@ -166,6 +166,7 @@ INVALID = [
         "False only.*optimizer_class=torch.optim.Adam",
     ),
     (dict(policy_kwargs=dict(optimizer_kwargs=dict(differentiable=True))), "differentiable", "False only"),
+    (dict(policy_kwargs=dict(optimizer_kwargs=dict(fused=True, foreach=True))), "fused and foreach", "cannot both be True"),
 ]
 
 
