@@ -16,7 +16,7 @@ from torch import nn
 from sb3_soup.confidence import ConfidenceStrategy, check_confidence, make_confidence
 from sb3_soup.networks import EnsembleActor, EnsembleCritic, HeadIndex
 from sb3_soup.optim import EnsembleAdam, ensemble_param_groups
-from sb3_soup.validation import boolean, check_head_counts, integer
+from sb3_soup.validation import boolean, check_head_counts, integer, outside_stacklevel
 
 # The paper's sizes (Section 5): actor (256, **128**), critic (256, 256, **128**), bold = head layer.
 DEFAULT_NET_ARCH: dict[str, list[int]] = dict(pi_body=[256], pi_head=[128], qf_body=[256, 256], qf_head=[128])
@@ -182,7 +182,7 @@ def check_n_critics(n_critics: Any, n_critic_heads: int) -> None:
             "(n_critic_heads, each one critic as SB3's n_critics=1 builds); TD3's clipped double Q is SOUP's "
             "default target_q='min_pair' (the smaller of a head's target and another head's)",
             UserWarning,
-            stacklevel=4,
+            stacklevel=outside_stacklevel(),
         )
 
 
@@ -235,7 +235,7 @@ def check_policy(
             f"the observations are images {observation_space.shape}: MlpPolicy flattens their pixels (scaled to "
             "[0, 1]) into the MLP, as SB3's DDPG does. For a CNN (NatureCNN) use policy='CnnPolicy'",
             UserWarning,
-            stacklevel=4,
+            stacklevel=outside_stacklevel(),
         )
 
 

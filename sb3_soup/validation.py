@@ -12,7 +12,10 @@ number.
 """
 
 import math
+import os
+import sys
 from collections.abc import Callable, Sequence
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -42,6 +45,23 @@ def is_integral(value: Any) -> bool:
     if isinstance(value, (float, np.floating)):
         return math.isfinite(value) and float(value).is_integer()
     return is_int(value)
+
+
+def outside_stacklevel() -> int:
+    """
+    The ``stacklevel`` for ``warnings.warn``, called by the function that calls this, that points at the first frame
+    outside sb3-soup and Stable-Baselines3: the user's line (or the RL Zoo's) however deep SB3 builds what warns.
+    """
+    import stable_baselines3
+
+    import sb3_soup
+
+    library_dirs = tuple(os.path.dirname(module.__file__ or "") + os.sep for module in (sb3_soup, stable_baselines3))
+    frame: FrameType | None = sys._getframe(1)  # the function that warns: stacklevel 1
+    level = 1
+    while frame is not None and frame.f_code.co_filename.startswith(library_dirs):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def interval(low: float, high: float, low_open: bool, high_open: bool) -> str:

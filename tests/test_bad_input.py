@@ -74,8 +74,11 @@ def test_policies_that_do_not_fit_are_refused():
 def test_image_observations_with_mlp_policy_are_flattened_with_a_warning():
     """As SB3's DDPG: MlpPolicy flattens the pixels (scaled to [0, 1]); SOUP says so and how to get a CNN."""
     images = spaces.Box(0, 255, (8, 8, 1), np.uint8)
-    with pytest.warns(UserWarning, match=r"observations are images \(1, 8, 8\): MlpPolicy flattens.*use policy='CnnPolicy'"):
+    with pytest.warns(
+        UserWarning, match=r"observations are images \(1, 8, 8\): MlpPolicy flattens.*use policy='CnnPolicy'"
+    ) as w:
         model = SOUP("MlpPolicy", ToyEnv(images, ACTIONS), n_heads=2, **SMALL)
+    assert w[0].filename == __file__  # at the user's line, however deep SB3 builds the policy
     model.learn(30)  # learns (on flattened pixels)
     assert model.actor.features_extractor.__class__.__name__ == "FlattenExtractor" and model.num_timesteps == 30
 

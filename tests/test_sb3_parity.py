@@ -143,9 +143,10 @@ def test_n_critics_1_is_each_critic_head_and_more_warn():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         SOUP("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[64], n_critics=1))  # SB3's test_run
-    with pytest.warns(UserWarning, match=r"n_critics=2 is ignored.*3 critic heads.*target_q='min_pair'"):
+    with pytest.warns(UserWarning, match=r"n_critics=2 is ignored.*3 critic heads.*target_q='min_pair'") as record:
         model = SOUP("MlpPolicy", "Pendulum-v1", n_heads=3, policy_kwargs=dict(net_arch=[8], n_critics=2))
     assert model.policy.n_critic_heads == 3
+    assert record[0].filename == __file__  # the warning points at the line that passed n_critics
 
 
 def test_policy_kwargs_stay_as_given_and_load_accepts_them(tmp_path):
