@@ -15,6 +15,7 @@ into ``--out``. Exit code 1 if any SOUP run fails where its control does not.
 """
 
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -48,6 +49,7 @@ def zoo_entries(algo: str) -> dict[str, dict[str, Any]]:
     return yaml.load(path.read_text(), Loader=yaml.UnsafeLoader)  # the Zoo's own loader (anchors and merges)
 
 
+@functools.cache  # td3.yml and ddpg.yml name the same envs
 def env_problem(env_id: str) -> str | None:
     """None if ``env_id`` can be made and reset here, else why not."""
     try:

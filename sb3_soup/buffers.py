@@ -21,7 +21,7 @@ from stable_baselines3.common.type_aliases import DictReplayBufferSamples, Tenso
 from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
-from sb3_soup.validation import integer, number
+from sb3_soup.validation import integer, number, outside_stacklevel
 
 
 class BootstrappedReplayBufferSamples(NamedTuple):
@@ -372,6 +372,6 @@ def bootstrapped_buffer_class(
             "automatically when `replay_buffer_class` is `None`. "
             "To use n-step returns with a custom replay buffer, configure it explicitly, e.g. "
             f'`replay_buffer_kwargs={{"n_steps": {n_steps}, "gamma": {gamma}}}`.',
-            stacklevel=3,
+            stacklevel=outside_stacklevel(),
         )
     return buffer_class

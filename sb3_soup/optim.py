@@ -16,6 +16,12 @@ from torch.utils._foreach_utils import _get_fused_kernels_supported_devices
 # The devices with torch's fused Adam kernel (``torch._fused_adam_``, which ``torch.optim.Adam(fused=True)`` runs)
 FUSED_DEVICES = tuple(_get_fused_kernels_supported_devices())
 
+# torch.optim.Adam's options beside lr, betas, eps and weight_decay, with its defaults (a state saved before
+# EnsembleAdam took them trained with these)
+ADAM_OPTION_DEFAULTS: dict[str, Any] = dict(
+    amsgrad=False, foreach=None, maximize=False, fused=None, decoupled_weight_decay=False
+)
+
 
 class EnsembleAdam(th.optim.Optimizer):
     """
@@ -89,13 +95,10 @@ class EnsembleAdam(th.optim.Optimizer):
         super().__init__(params, defaults)
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        # a state saved before EnsembleAdam took these options: torch.optim.Adam's defaults, as it trained
         super().__setstate__(state)
         for group in self.param_groups:
-            for key in ("amsgrad", "maximize", "decoupled_weight_decay"):
-                group.setdefault(key, False)
-            group.setdefault("foreach", None)
-            group.setdefault("fused", None)
+            for key, value in ADAM_OPTION_DEFAULTS.items():
+                group.setdefault(key, value)
 
     @th.no_grad()
     def step(self, closure: Any = None, head: int | th.Tensor | None = None) -> Any:  # type: ignore[override]

@@ -95,8 +95,9 @@ def test_replay_buffer_class_n_step_replay_buffer_as_sb3_allows(tmp_path):
 
 def test_n_steps_with_a_custom_replay_buffer_class_warns_as_sb3():
     for replay_buffer_class in (ReplayBuffer, BootstrappedReplayBuffer, NStepReplayBuffer):
-        with pytest.warns(UserWarning, match=r"`n_steps=4` is ignored because a custom `replay_buffer_class`"):
+        with pytest.warns(UserWarning, match=r"`n_steps=4` is ignored because a custom `replay_buffer_class`") as record:
             model = SOUP("MlpPolicy", "Pendulum-v1", n_steps=4, replay_buffer_class=replay_buffer_class, **SMALL)
+        assert record[0].filename == __file__  # at the line that passed n_steps
         assert getattr(model.replay_buffer, "n_steps", 1) != 4  # (NStepReplayBuffer: its default, 3)
 
 
