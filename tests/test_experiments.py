@@ -23,7 +23,16 @@ from sb3_soup import SOUP, DecayingNormalActionNoise
 from sb3_soup.checkpoint import latest_checkpoint
 from sb3_soup.experiments import logs
 from sb3_soup.experiments.__main__ import main
-from sb3_soup.experiments.grid import SUITES, VARIANTS, RunSpec, build_grid, load_hyperparams, parse_overrides, parse_seeds
+from sb3_soup.experiments.grid import (
+    SUITES,
+    VARIANTS,
+    RunSpec,
+    build_grid,
+    load_hyperparams,
+    parse_overrides,
+    parse_seeds,
+    suite_columns,
+)
 from sb3_soup.experiments.metrics import add_speed_ups, first_crossing, model_metrics, running_average, speed_up
 from sb3_soup.experiments.parallel import available_cores, run_grid
 from sb3_soup.experiments.progress import ProgressBoard, progress_mode
@@ -733,3 +742,14 @@ def test_a_name_stores_one_variants_runs_under_it(tmp_path):
         build_grid("Pendulum-v1", tmp_path, models=["soup", "dbddpg"], name="both")
     with pytest.raises(ValueError, match="folder name"):
         build_grid("Pendulum-v1", tmp_path, models=["soup"], name="a/b")
+
+
+def test_a_named_run_is_its_own_column_in_a_suites_report_not_its_variants(tmp_path):
+    def spec(**kwargs) -> RunSpec:
+        return build_grid("Pendulum-v1", tmp_path, suite="benchmark", seeds=[0], **kwargs)[0]
+
+    assert suite_columns(spec(models=["soup_defaults"]))["benchmark"] == ("soup_defaults", "SOUP (defaults)")
+    named = spec(models=["soup_defaults"], name="qf_action0")
+    assert suite_columns(named)["benchmark"] == ("soup_defaults", "qf_action0")
+    # a variant stored as its twin (the paper's SOUP as the models suite's soup-k5) keeps the suite's title
+    assert suite_columns(spec(models=["soup_paper"]))["benchmark"] == ("soup_paper", "SOUP, the paper's (K=5)")

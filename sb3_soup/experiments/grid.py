@@ -578,10 +578,13 @@ def suite_columns(spec: RunSpec, extra_heads: dict[str, Sequence[int]] | None = 
     ``none``) and its K is one of the suite's head counts: the default ones, or ``extra_heads`` (those a ``run
     --heads`` asked for, as recorded in ``grid.json``).
 
+    A run given its own name (``run --name``) keeps it as its title in every suite: it is not the variant's run.
+
     :param spec: the run
     :param extra_heads: suite -> head counts used beyond the suite's defaults
     :return: suite -> (the suite's variant, its column title)
     """
+    named = spec.model != _model_id(spec.variant, spec.n_heads)
     columns = {}
     for suite_name, suite in SUITES.items():
         allowed = {*suite.heads, *(extra_heads or {}).get(suite_name, ())}
@@ -590,7 +593,7 @@ def suite_columns(spec: RunSpec, extra_heads: dict[str, Sequence[int]] | None = 
         for name in suite.variants:
             variant = VARIANTS[name]
             if spec.variant in (variant.name, variant.same_as):
-                columns[suite_name] = (name, _format(variant.label, spec.n_heads))
+                columns[suite_name] = (name, spec.label if named else _format(variant.label, spec.n_heads))
                 break
     return columns
 
